@@ -1,0 +1,1 @@
+//! Scan sequences. (Being written.)

@@ -1,0 +1,281 @@
+//! The rig file: TOML schema ([`schema`]), loading with file:line errors, and [`RigConfig::validate`],
+//! which reports every problem at once.
+
+pub mod schema;
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+pub use schema::*;
+
+use crate::geometry::Vector3;
+
+/// One problem found in a rig file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Problem {
+    /// Dotted key path, e.g. `reconstruction.resolution`.
+    pub key: String,
+    /// 1-based line of the key in the file, when it is there.
+    pub line: Option<usize>,
+    /// What is wrong.
+    pub message: String,
+}
+
+impl fmt::Display for Problem {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.line {
+            Some(l) => write!(f, "line {l}: `{}`: {}", self.key, self.message),
+            None => write!(f, "`{}`: {}", self.key, self.message),
+        }
+    }
+}
+
+/// Why a rig file could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("{path}: cannot read rig file")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file is not valid TOML or does not fit the schema.
+    #[error("{path}:{line}:{column}: {message}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+        /// 1-based column.
+        column: usize,
+        /// The parser's message.
+        message: String,
+    },
+    /// The file parsed but its values do not make a working rig.
+    #[error("{path}: {} problem(s):\n{}", problems.len(), problems.iter().map(|p| format!("  {}:{p}", path.display())).collect::<Vec<_>>().join("\n"))]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// Every problem found.
+        problems: Vec<Problem>,
+    },
+}
+
+/// Read, parse and validate a rig file.
+pub fn load(path: &Path) -> Result<RigConfig, ConfigError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.to_owned(), source })?;
+    parse(&text, path)
+}
+
+/// Parse and validate rig-file text; `path` is only used in messages.
+pub fn parse(text: &str, path: &Path) -> Result<RigConfig, ConfigError> {
+    let config: RigConfig = toml::from_str(text).map_err(|e| {
+        let (line, column) = e.span().map(|s| line_col(text, s.start)).unwrap_or((1, 1));
+        ConfigError::Parse { path: path.to_owned(), line, column, message: e.message().trim().to_owned() }
+    })?;
+    let mut problems = config.validate();
+    if !problems.is_empty() {
+        locate(text, &mut problems);
+        return Err(ConfigError::Invalid { path: path.to_owned(), problems });
+    }
+    Ok(config)
+}
+
+fn line_col(text: &str, offset: usize) -> (usize, usize) {
+    let before = &text[..offset.min(text.len())];
+    let line = before.bytes().filter(|&b| b == b'\n').count() + 1;
+    let column = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+    (line, column)
+}
+
+/// Fill in the line of each problem's key from the document's spans (the deepest part of the key
+/// path that exists in the file).
+fn locate(text: &str, problems: &mut [Problem]) {
+    let Ok(doc) = toml_edit::Document::parse(text) else { return };
+    for p in problems.iter_mut() {
+        let parts: Vec<&str> = p.key.split('.').collect();
+        p.line = key_span(doc.as_table(), &parts).map(|s| line_col(text, s.start).0);
+    }
+}
+
+fn key_span(table: &dyn toml_edit::TableLike, parts: &[&str]) -> Option<std::ops::Range<usize>> {
+    let (first, rest) = parts.split_first()?;
+    let (key, item) = table.get_key_value(first)?;
+    let here = key.span().or_else(|| item.span());
+    let deeper = match (item, rest.first()) {
+        (_, None) => None,
+        (toml_edit::Item::ArrayOfTables(a), Some(i)) => {
+            let t = a.get(i.parse().ok()?)?;
+            key_span(t, &rest[1..]).or_else(|| t.span())
+        }
+        (toml_edit::Item::Value(toml_edit::Value::Array(a)), Some(i)) => a.get(i.parse().ok()?)?.span(),
+        (item, Some(_)) => item.as_table_like().and_then(|t| key_span(t, rest)),
+    };
+    deeper.or(here)
+}
+
+impl RigConfig {
+    /// Every problem with the values of this rig (ranges, consistency between sections), at once.
+    pub fn validate(&self) -> Vec<Problem> {
+        let mut out = Vec::new();
+        let mut bad = |key: &str, message: String| out.push(Problem { key: key.to_owned(), line: None, message });
+
+        match &self.turntable {
+            TurntableConfig::Sim(t) => {
+                if t.steps_per_turn == 0 {
+                    bad("turntable.steps_per_turn", "must be at least 1".into());
+                }
+                if !(t.speed_deg_per_s.is_finite() && t.speed_deg_per_s > 0.0) {
+                    bad("turntable.speed_deg_per_s", format!("must be a positive number, got {}", t.speed_deg_per_s));
+                }
+            }
+        }
+
+        let light_count = self.lights.as_ref().map_or(0, |l| l.lights.len());
+        if let Some(lights) = &self.lights {
+            for (i, l) in lights.lights.iter().enumerate() {
+                if !l.position_m.iter().all(|v| v.is_finite()) {
+                    bad(&format!("lights.light.{i}.position_m"), "must be finite".into());
+                }
+                if !(l.intensity.is_finite() && l.intensity >= 0.0) {
+                    bad(&format!("lights.light.{i}.intensity"), "must be a non-negative number".into());
+                }
+            }
+            for (i, l) in lights.lasers.iter().enumerate() {
+                let n = l.plane_normal;
+                if !(n.iter().all(|v| v.is_finite()) && n.iter().map(|v| v * v).sum::<f64>() > 1e-18) {
+                    bad(&format!("lights.laser.{i}.plane_normal"), "must be a finite, non-zero vector".into());
+                }
+            }
+        }
+
+        let check_camera =
+            |bad: &mut dyn FnMut(&str, String), section: &str, w: u32, h: u32, cal: &CameraCalibration| {
+                if w == 0 || h == 0 || w > 16384 || h > 16384 {
+                    bad(&format!("{section}.width"), format!("image size {w}x{h} is not between 1 and 16384 pixels"));
+                }
+                let k = &cal.intrinsics;
+                if !(k.fx.is_finite() && k.fx > 0.0 && k.fy.is_finite() && k.fy > 0.0) {
+                    bad(&format!("{section}.calibration.intrinsics.fx"), "focal lengths must be positive".into());
+                }
+                if ![k.cx, k.cy, k.skew, k.k1, k.k2].iter().all(|v| v.is_finite()) {
+                    bad(&format!("{section}.calibration.intrinsics"), "values must be finite".into());
+                }
+                match &cal.pose {
+                    PoseConfig::LookAt { eye_m, target_m, up } => {
+                        let e = Vector3::from(*eye_m);
+                        let t = Vector3::from(*target_m);
+                        let u = Vector3::from(*up);
+                        if !(e.iter().chain(t.iter()).chain(u.iter()).all(|v| v.is_finite())) {
+                            bad(&format!("{section}.calibration.pose"), "values must be finite".into());
+                        } else if (t - e).norm() < 1e-9 || (t - e).normalize().cross(&u).norm() < 1e-6 {
+                            bad(
+                                &format!("{section}.calibration.pose.target_m"),
+                                "target must differ from eye and the view must not be parallel to `up`".into(),
+                            );
+                        }
+                    }
+                    PoseConfig::Matrix { rotation, translation_m } => {
+                        let r = crate::geometry::Matrix3::from_fn(|i, j| rotation[i][j]);
+                        let err = (r * r.transpose() - crate::geometry::Matrix3::identity()).norm();
+                        if !(err < 1e-6 && (r.determinant() - 1.0).abs() < 1e-6) {
+                            bad(&format!("{section}.calibration.pose.rotation"), "is not a rotation matrix".into());
+                        }
+                        if !translation_m.iter().all(|v| v.is_finite()) {
+                            bad(&format!("{section}.calibration.pose.translation_m"), "must be finite".into());
+                        }
+                    }
+                }
+            };
+
+        let mut uses_sim = matches!(self.turntable, TurntableConfig::Sim(_));
+        match &self.camera {
+            CameraConfig::Sim(c) => {
+                uses_sim = true;
+                check_camera(&mut bad, "camera", c.width, c.height, &c.calibration);
+                if c.buffer_depth == 0 || c.buffer_depth > 32 {
+                    bad("camera.buffer_depth", "must be between 1 and 32".into());
+                }
+                if !(c.noise_sigma.is_finite() && c.noise_sigma >= 0.0) {
+                    bad("camera.noise_sigma", "must be a non-negative number".into());
+                }
+            }
+        }
+        if let Some(ProjectorConfig::Sim(p)) = &self.projector {
+            uses_sim = true;
+            check_camera(&mut bad, "projector", p.width, p.height, &p.calibration);
+        }
+        if let Some(DepthCameraConfig::Sim(d)) = &self.depth_camera {
+            uses_sim = true;
+            check_camera(&mut bad, "depth_camera", d.width, d.height, &d.calibration);
+        }
+        if self.lights.as_ref().is_some_and(|l| l.kind == LightsKind::Sim) {
+            uses_sim = true;
+        }
+        match &self.sim {
+            None if uses_sim => bad("sim", "a `[sim]` section is needed when a device has kind = \"sim\"".into()),
+            Some(s) => {
+                if !crate::sim::SCENE_NAMES.contains(&s.scene.as_str()) {
+                    bad(
+                        "sim.scene",
+                        format!("unknown scene `{}`; known: {}", s.scene, crate::sim::SCENE_NAMES.join(", ")),
+                    );
+                }
+                if !(s.scale.is_finite() && s.scale > 0.0) {
+                    bad("sim.scale", "must be a positive number".into());
+                }
+                if !(s.ambient.is_finite() && (0.0..=1.0).contains(&s.ambient)) {
+                    bad("sim.ambient", "must be between 0 and 1".into());
+                }
+            }
+            None => {}
+        }
+
+        let plan = &self.scan;
+        if plan.positions == 0 || plan.positions > 100_000 {
+            bad("scan.positions", format!("must be between 1 and 100000, got {}", plan.positions));
+        }
+        if !plan.start_deg.is_finite() {
+            bad("scan.start_deg", "must be finite".into());
+        }
+        for (i, &l) in plan.lights.iter().enumerate() {
+            if l >= light_count {
+                bad(
+                    &format!("scan.lights.{i}"),
+                    format!("light {l} does not exist: the rig has {light_count} light(s)"),
+                );
+            }
+        }
+        if plan.capture_timeout_ms == 0 {
+            bad("scan.capture_timeout_ms", "must be at least 1".into());
+        }
+        if plan.move_timeout_ms == 0 {
+            bad("scan.move_timeout_ms", "must be at least 1".into());
+        }
+
+        let r = &self.reconstruction;
+        if !r.bbox().is_valid() {
+            bad("reconstruction.bbox_max_m", "the working volume must be finite with max > min on every axis".into());
+        }
+        if r.resolution < 2 || r.resolution > 4096 {
+            bad("reconstruction.resolution", format!("must be between 2 and 4096 voxels, got {}", r.resolution));
+        }
+        let s = &r.silhouette;
+        if !(s.threshold.is_finite() && (0.0..1.0).contains(&s.threshold)) {
+            bad("reconstruction.silhouette.threshold", format!("must be in [0, 1), got {}", s.threshold));
+        }
+        if s.dilate_px > 64 || s.erode_px > 64 {
+            bad("reconstruction.silhouette.dilate_px", "disc radii above 64 pixels are not supported".into());
+        }
+        if r.mesh.smooth_radius > 8 {
+            bad("reconstruction.mesh.smooth_radius", "must be at most 8 voxels".into());
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests;

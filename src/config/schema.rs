@@ -1,0 +1,424 @@
+//! The rig file's schema: one struct per TOML table, `deny_unknown_fields` everywhere, device
+//! sections tagged by `kind`.
+
+use serde::Deserialize;
+
+use crate::geometry::{Aabb, CameraModel, Intrinsics, Pose, Vector3};
+
+/// A whole rig file.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RigConfig {
+    /// `[rig]`: name and description.
+    pub rig: RigSection,
+    /// `[turntable]`.
+    pub turntable: TurntableConfig,
+    /// `[lights]`: white lights and line lasers. Optional (a rig may have none).
+    #[serde(default)]
+    pub lights: Option<LightsConfig>,
+    /// `[camera]`.
+    pub camera: CameraConfig,
+    /// `[projector]`, optional.
+    #[serde(default)]
+    pub projector: Option<ProjectorConfig>,
+    /// `[depth_camera]`, optional.
+    #[serde(default)]
+    pub depth_camera: Option<DepthCameraConfig>,
+    /// `[sim]`: the simulated world; required when any device has `kind = "sim"`.
+    #[serde(default)]
+    pub sim: Option<SimConfig>,
+    /// `[scan]`: the scan plan.
+    pub scan: ScanPlan,
+    /// `[reconstruction]`.
+    pub reconstruction: ReconstructionConfig,
+}
+
+/// `[rig]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RigSection {
+    /// A name for logs and reports.
+    pub name: String,
+    /// Free text.
+    #[serde(default)]
+    pub description: String,
+}
+
+/// `[turntable]`, tagged by `kind`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum TurntableConfig {
+    /// `kind = "sim"`: a simulated stepper.
+    Sim(SimTurntableConfig),
+}
+
+/// `[turntable] kind = "sim"`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimTurntableConfig {
+    /// Micro-steps per full turn of the table.
+    #[serde(default = "default_steps_per_turn")]
+    pub steps_per_turn: u32,
+    /// Turning speed, degrees per second of simulated time.
+    #[serde(default = "default_speed")]
+    pub speed_deg_per_s: f64,
+    /// Whether a move really takes its simulated time (sleeps). Off makes tests fast; the motion
+    /// is still reported as in progress until `move_to` returns.
+    #[serde(default)]
+    pub real_time: bool,
+}
+
+fn default_steps_per_turn() -> u32 {
+    3200
+}
+fn default_speed() -> f64 {
+    90.0
+}
+
+/// `[lights]`: the light array's driver and the calibrated geometry of its lights and lasers.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LightsConfig {
+    /// Driver.
+    pub kind: LightsKind,
+    /// `[[lights.light]]`: white point lights, in index order.
+    #[serde(default, rename = "light")]
+    pub lights: Vec<PointLightConfig>,
+    /// `[[lights.laser]]`: line lasers, in index order.
+    #[serde(default, rename = "laser")]
+    pub lasers: Vec<LaserConfig>,
+}
+
+/// Light array drivers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LightsKind {
+    /// Simulated lights that light the simulated scene.
+    Sim,
+}
+
+/// One white point light.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PointLightConfig {
+    /// Position in the rig frame, metres.
+    pub position_m: [f64; 3],
+    /// Radiant intensity, relative (1.0 = a light that makes a white surface facing it at 0.5 m
+    /// fully bright).
+    #[serde(default = "one")]
+    pub intensity: f64,
+}
+
+/// One line laser: a light plane fanned out from a point.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LaserConfig {
+    /// The laser's exit point in the rig frame, metres.
+    pub origin_m: [f64; 3],
+    /// Normal of the light plane in the rig frame (any length).
+    pub plane_normal: [f64; 3],
+    /// Colour of the line, 8-bit RGB.
+    #[serde(default = "red")]
+    pub colour: [u8; 3],
+}
+
+fn one() -> f64 {
+    1.0
+}
+fn red() -> [u8; 3] {
+    [255, 0, 0]
+}
+
+/// `[camera]`, tagged by `kind`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum CameraConfig {
+    /// `kind = "sim"`: renders the simulated world.
+    Sim(SimCameraConfig),
+}
+
+impl CameraConfig {
+    /// The calibrated camera model in the rig frame.
+    pub fn model(&self) -> CameraModel {
+        match self {
+            CameraConfig::Sim(c) => c.calibration.model(c.width, c.height),
+        }
+    }
+}
+
+/// `[camera] kind = "sim"`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimCameraConfig {
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// How many frames the simulated driver queues (like V4L2 buffers): after a scene change the
+    /// first `buffer_depth - 1` frames are stale.
+    #[serde(default = "default_buffer_depth")]
+    pub buffer_depth: u32,
+    /// Standard deviation of additive Gaussian pixel noise, 8-bit levels (0 = none).
+    #[serde(default)]
+    pub noise_sigma: f64,
+    /// Seed of the noise generator.
+    #[serde(default)]
+    pub seed: u64,
+    /// `[camera.calibration]`.
+    pub calibration: CameraCalibration,
+}
+
+fn default_buffer_depth() -> u32 {
+    3
+}
+
+/// A camera's calibration: intrinsics and pose in the rig frame.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraCalibration {
+    /// `[camera.calibration.intrinsics]`, pixels.
+    pub intrinsics: Intrinsics,
+    /// `[camera.calibration.pose]`.
+    pub pose: PoseConfig,
+}
+
+impl CameraCalibration {
+    /// The camera model for an image of `width` x `height` pixels.
+    pub fn model(&self, width: u32, height: u32) -> CameraModel {
+        CameraModel { width, height, intrinsics: self.intrinsics, pose: self.pose.pose() }
+    }
+}
+
+/// A pose in the rig frame, either by look-at or by rotation + translation.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(untagged, deny_unknown_fields)]
+pub enum PoseConfig {
+    /// Camera centre `eye_m` looking at `target_m`, `up` up in the image.
+    LookAt {
+        /// Centre of projection, rig frame, metres.
+        eye_m: [f64; 3],
+        /// Point on the optical axis, rig frame, metres.
+        target_m: [f64; 3],
+        /// Up direction (default `+z`).
+        #[serde(default = "z_up")]
+        up: [f64; 3],
+    },
+    /// `x_cam = rotation · x_rig + translation_m`; rotation as three rows.
+    Matrix {
+        /// Rotation rig -> camera, row-major.
+        rotation: [[f64; 3]; 3],
+        /// Translation, metres.
+        translation_m: [f64; 3],
+    },
+}
+
+fn z_up() -> [f64; 3] {
+    [0.0, 0.0, 1.0]
+}
+
+impl PoseConfig {
+    /// The pose.
+    pub fn pose(&self) -> Pose {
+        match self {
+            PoseConfig::LookAt { eye_m, target_m, up } => {
+                Pose::look_at(Vector3::from(*eye_m), Vector3::from(*target_m), Vector3::from(*up))
+            }
+            PoseConfig::Matrix { rotation, translation_m } => Pose {
+                rotation: crate::geometry::Matrix3::from_fn(|r, c| rotation[r][c]),
+                translation: Vector3::from(*translation_m),
+            },
+        }
+    }
+}
+
+/// `[projector]`, tagged by `kind`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum ProjectorConfig {
+    /// `kind = "sim"`: projects onto the simulated scene.
+    Sim(SimProjectorConfig),
+}
+
+/// `[projector] kind = "sim"`: a projector modelled as an inverse pinhole camera.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimProjectorConfig {
+    /// Width, projector pixels.
+    pub width: u32,
+    /// Height, projector pixels.
+    pub height: u32,
+    /// Brightness of a full-white pattern pixel on a white surface, relative to a light of
+    /// intensity 1.
+    #[serde(default = "one")]
+    pub intensity: f64,
+    /// `[projector.calibration]`: intrinsics and pose in the rig frame.
+    pub calibration: CameraCalibration,
+}
+
+/// `[depth_camera]`, tagged by `kind`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum DepthCameraConfig {
+    /// `kind = "sim"`: depth rendered from the simulated scene.
+    Sim(SimDepthCameraConfig),
+}
+
+/// `[depth_camera] kind = "sim"`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimDepthCameraConfig {
+    /// Width, pixels.
+    pub width: u32,
+    /// Height, pixels.
+    pub height: u32,
+    /// Standard deviation of depth noise, metres.
+    #[serde(default)]
+    pub noise_sigma_m: f64,
+    /// Noise seed.
+    #[serde(default)]
+    pub seed: u64,
+    /// `[depth_camera.calibration]`.
+    pub calibration: CameraCalibration,
+}
+
+/// `[sim]`: the simulated world.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimConfig {
+    /// The scene on the turntable: `"sphere"`, `"box"`, `"cup"`, `"pit-block"` or `"textured-box"`.
+    pub scene: String,
+    /// Uniform scale applied to the preset scene (1.0 = preset size, about 8 cm across).
+    #[serde(default = "one")]
+    pub scale: f64,
+    /// Background colour seen where no object is, 8-bit RGB.
+    #[serde(default)]
+    pub background: [u8; 3],
+    /// Ambient light level, 0..1 of full brightness, so unlit faces stay visible.
+    #[serde(default = "default_ambient")]
+    pub ambient: f64,
+}
+
+fn default_ambient() -> f64 {
+    0.25
+}
+
+/// `[scan]`: what the acquisition does.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScanPlan {
+    /// Turntable positions, evenly spaced over one turn.
+    pub positions: u32,
+    /// Angle of the first position, degrees.
+    #[serde(default)]
+    pub start_deg: f64,
+    /// Lights switched on (full level) for each position's frame, by index.
+    #[serde(default)]
+    pub lights: Vec<usize>,
+    /// Wait after a move has finished before capturing, milliseconds (vibration settles).
+    #[serde(default)]
+    pub settle_ms: u64,
+    /// Timeout of one turntable move, milliseconds.
+    #[serde(default = "default_move_timeout")]
+    pub move_timeout_ms: u64,
+    /// Timeout of one frame capture, milliseconds.
+    #[serde(default = "default_capture_timeout")]
+    pub capture_timeout_ms: u64,
+    /// Stale frames to discard after a change before giving up.
+    #[serde(default = "default_max_stale")]
+    pub max_stale_frames: u32,
+}
+
+fn default_move_timeout() -> u64 {
+    30_000
+}
+fn default_capture_timeout() -> u64 {
+    2_000
+}
+fn default_max_stale() -> u32 {
+    8
+}
+
+/// `[reconstruction]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReconstructionConfig {
+    /// Method: `"space-carving"`.
+    pub method: Method,
+    /// Working volume minimum corner, object frame, metres.
+    pub bbox_min_m: [f64; 3],
+    /// Working volume maximum corner, object frame, metres.
+    pub bbox_max_m: [f64; 3],
+    /// Voxels along the longest side of the working volume (cubic voxels).
+    pub resolution: u32,
+    /// `[reconstruction.silhouette]`.
+    #[serde(default)]
+    pub silhouette: SilhouetteConfig,
+    /// `[reconstruction.mesh]`.
+    #[serde(default)]
+    pub mesh: MeshConfig,
+}
+
+impl ReconstructionConfig {
+    /// The working volume.
+    pub fn bbox(&self) -> Aabb {
+        Aabb { min: self.bbox_min_m, max: self.bbox_max_m }
+    }
+}
+
+/// Reconstruction methods.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// Visual hull by silhouette carving.
+    SpaceCarving,
+}
+
+impl Method {
+    /// The name used in TOML, the CLI and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::SpaceCarving => "space-carving",
+        }
+    }
+}
+
+/// Silhouette extraction: a pixel is object where the largest per-channel difference from
+/// `background`, scaled to 0..1, exceeds `threshold`; then a closing (dilate, erode) with discs of the
+/// given radii in pixels. With `background = [0, 0, 0]` this is the Middlebury recipe (threshold on
+/// max(R, G, B)).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SilhouetteConfig {
+    /// Threshold, 0..1.
+    #[serde(default = "default_threshold")]
+    pub threshold: f64,
+    /// Background colour, 8-bit RGB.
+    #[serde(default)]
+    pub background: [u8; 3],
+    /// Dilation disc radius, pixels.
+    #[serde(default)]
+    pub dilate_px: u32,
+    /// Erosion disc radius, pixels.
+    #[serde(default)]
+    pub erode_px: u32,
+}
+
+fn default_threshold() -> f64 {
+    0.1
+}
+
+impl Default for SilhouetteConfig {
+    fn default() -> Self {
+        SilhouetteConfig { threshold: default_threshold(), background: [0, 0, 0], dilate_px: 0, erode_px: 0 }
+    }
+}
+
+/// `[reconstruction.mesh]`.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MeshConfig {
+    /// Box-filter the occupancy over this many voxels (radius) before marching cubes, so the mesh
+    /// is not a staircase; 0 = raw occupancy.
+    #[serde(default)]
+    pub smooth_radius: u32,
+}

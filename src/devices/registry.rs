@@ -1,0 +1,63 @@
+//! Builds the rig's drivers from the config's `kind` fields.
+
+use crate::config::{CameraConfig, DepthCameraConfig, LightsKind, ProjectorConfig, RigConfig, TurntableConfig};
+use crate::sim::SimWorld;
+
+use super::{Camera, DepthCamera, DeviceError, LightArray, Projector, Turntable};
+
+/// The opened devices of one rig.
+#[derive(Debug)]
+pub struct Rig {
+    /// The turntable.
+    pub turntable: Box<dyn Turntable>,
+    /// The light array, if the rig has one.
+    pub lights: Option<Box<dyn LightArray>>,
+    /// The camera.
+    pub camera: Box<dyn Camera>,
+    /// The projector, if any.
+    pub projector: Option<Box<dyn Projector>>,
+    /// The depth camera, if any.
+    pub depth_camera: Option<Box<dyn DepthCamera>>,
+    /// The simulated world, when any device is simulated: the ground truth for evaluation.
+    pub sim: Option<SimWorld>,
+}
+
+/// Open every device the config names.
+pub fn build_rig(config: &RigConfig) -> Result<Rig, DeviceError> {
+    let sim = match &config.sim {
+        Some(s) => Some(SimWorld::from_config(s, config)?),
+        None => None,
+    };
+    let need_sim = |device: &str| {
+        sim.clone().ok_or_else(|| DeviceError::InvalidConfig {
+            device: device.to_owned(),
+            field: "kind",
+            problem: "kind = \"sim\" needs a [sim] section".into(),
+        })
+    };
+    let turntable: Box<dyn Turntable> = match &config.turntable {
+        TurntableConfig::Sim(c) => Box::new(super::turntable::sim::SimTurntable::new(need_sim("turntable")?, c)),
+    };
+    let lights: Option<Box<dyn LightArray>> = match &config.lights {
+        None => None,
+        Some(l) => match l.kind {
+            LightsKind::Sim => Some(Box::new(super::lights::sim::SimLightArray::new(need_sim("lights")?))),
+        },
+    };
+    let camera: Box<dyn Camera> = match &config.camera {
+        CameraConfig::Sim(c) => Box::new(super::camera::sim::SimCamera::new(need_sim("camera")?, c)),
+    };
+    let projector: Option<Box<dyn Projector>> = match &config.projector {
+        None => None,
+        Some(ProjectorConfig::Sim(p)) => {
+            Some(Box::new(super::projector::sim::SimProjector::new(need_sim("projector")?, p)))
+        }
+    };
+    let depth_camera: Option<Box<dyn DepthCamera>> = match &config.depth_camera {
+        None => None,
+        Some(DepthCameraConfig::Sim(d)) => {
+            Some(Box::new(super::depth::sim::SimDepthCamera::new(need_sim("depth_camera")?, d)))
+        }
+    };
+    Ok(Rig { turntable, lights, camera, projector, depth_camera, sim })
+}

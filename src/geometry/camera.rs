@@ -1,0 +1,231 @@
+//! Pinhole camera with two-term radial distortion.
+
+use nalgebra::{Matrix3, Matrix3x4, Point2, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// Pinhole intrinsics in pixels (image origin at the top-left corner, see the module docs),
+/// with Brown radial distortion `x_d = x (1 + k1 r² + k2 r⁴)` on normalised coordinates.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Intrinsics {
+    /// Focal length along x, pixels.
+    pub fx: f64,
+    /// Focal length along y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+    /// Skew (K[0][1]), pixels; 0 for every modern sensor.
+    #[serde(default)]
+    pub skew: f64,
+    /// First radial distortion coefficient (dimensionless).
+    #[serde(default)]
+    pub k1: f64,
+    /// Second radial distortion coefficient (dimensionless).
+    #[serde(default)]
+    pub k2: f64,
+}
+
+impl Intrinsics {
+    /// The 3x3 calibration matrix K.
+    pub fn matrix(&self) -> Matrix3<f64> {
+        Matrix3::new(self.fx, self.skew, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0)
+    }
+
+    /// From a 3x3 K (no distortion).
+    pub fn from_matrix(k: &Matrix3<f64>) -> Self {
+        let s = k[(2, 2)];
+        Intrinsics {
+            fx: k[(0, 0)] / s,
+            fy: k[(1, 1)] / s,
+            cx: k[(0, 2)] / s,
+            cy: k[(1, 2)] / s,
+            skew: k[(0, 1)] / s,
+            k1: 0.0,
+            k2: 0.0,
+        }
+    }
+
+    /// True when any distortion coefficient is non-zero.
+    pub fn has_distortion(&self) -> bool {
+        self.k1 != 0.0 || self.k2 != 0.0
+    }
+
+    /// Apply distortion to normalised coordinates.
+    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
+        let r2 = x * x + y * y;
+        let f = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
+        (x * f, y * f)
+    }
+
+    /// Invert [`Intrinsics::distort`] by fixed-point iteration (converges for the mild distortion of
+    /// real lenses, |k1 r²| < 0.5).
+    pub fn undistort(&self, xd: f64, yd: f64) -> (f64, f64) {
+        if !self.has_distortion() {
+            return (xd, yd);
+        }
+        let (mut x, mut y) = (xd, yd);
+        for _ in 0..20 {
+            let r2 = x * x + y * y;
+            let f = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
+            x = xd / f;
+            y = yd / f;
+        }
+        (x, y)
+    }
+
+    /// Normalised (distortion-free) coordinates to pixels, applying distortion.
+    pub fn normalised_to_pixel(&self, x: f64, y: f64) -> Point2<f64> {
+        let (xd, yd) = self.distort(x, y);
+        Point2::new(self.fx * xd + self.skew * yd + self.cx, self.fy * yd + self.cy)
+    }
+
+    /// Pixel coordinates to undistorted normalised coordinates.
+    pub fn pixel_to_normalised(&self, u: f64, v: f64) -> (f64, f64) {
+        let yd = (v - self.cy) / self.fy;
+        let xd = (u - self.cx - self.skew * yd) / self.fx;
+        self.undistort(xd, yd)
+    }
+}
+
+/// Rigid transform from a reference frame (rig or object frame) to the camera frame:
+/// `x_cam = rotation · x_ref + translation`, metres.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pose {
+    /// Rotation reference -> camera.
+    pub rotation: Matrix3<f64>,
+    /// Translation, metres (the reference origin expressed in the camera frame).
+    pub translation: Vector3<f64>,
+}
+
+impl Pose {
+    /// A camera at `eye` looking at `target` with `up` pointing up in the image (all in the reference
+    /// frame, metres). Camera `+z` points from eye to target, `+y` points down in the image.
+    pub fn look_at(eye: Vector3<f64>, target: Vector3<f64>, up: Vector3<f64>) -> Pose {
+        let z = (target - eye).normalize();
+        let x = z.cross(&up).normalize();
+        let y = z.cross(&x);
+        let rotation = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
+        Pose { rotation, translation: -(rotation * eye) }
+    }
+
+    /// Camera centre in the reference frame, metres.
+    pub fn centre(&self) -> Vector3<f64> {
+        -(self.rotation.transpose() * self.translation)
+    }
+
+    /// Transform a reference-frame point into the camera frame.
+    pub fn apply(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        self.rotation * p + self.translation
+    }
+
+    /// The same camera seen from the object frame when the turntable is at `degrees`:
+    /// `x_cam = R · Rz(θ) · x_obj + t`.
+    pub fn for_turntable_angle(&self, degrees: f64) -> Pose {
+        Pose { rotation: self.rotation * super::turntable_rotation(degrees), translation: self.translation }
+    }
+}
+
+/// A calibrated camera: image size in pixels, intrinsics, and pose (reference frame -> camera).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraModel {
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// Intrinsics, pixels.
+    pub intrinsics: Intrinsics,
+    /// Pose, reference frame -> camera frame.
+    pub pose: Pose,
+}
+
+impl CameraModel {
+    /// Project a reference-frame point (metres) to continuous pixel coordinates, applying distortion.
+    /// `None` when the point is not in front of the camera.
+    pub fn project(&self, p: &Vector3<f64>) -> Option<Point2<f64>> {
+        let c = self.pose.apply(p);
+        if c.z <= 0.0 {
+            return None;
+        }
+        Some(self.intrinsics.normalised_to_pixel(c.x / c.z, c.y / c.z))
+    }
+
+    /// The pixel a reference-frame point falls in, if it is in front of the camera and inside the image.
+    pub fn pixel_of(&self, p: &Vector3<f64>) -> Option<(u32, u32)> {
+        let q = self.project(p)?;
+        let (u, v) = (q.x.floor(), q.y.floor());
+        (u >= 0.0 && v >= 0.0 && u < self.width as f64 && v < self.height as f64).then_some((u as u32, v as u32))
+    }
+
+    /// `P = K [R | t]`, ignoring distortion.
+    pub fn projection_matrix(&self) -> Matrix3x4<f64> {
+        let mut rt = Matrix3x4::zeros();
+        rt.fixed_view_mut::<3, 3>(0, 0).copy_from(&self.pose.rotation);
+        rt.fixed_view_mut::<3, 1>(0, 3).copy_from(&self.pose.translation);
+        self.intrinsics.matrix() * rt
+    }
+
+    /// Unit ray direction in the reference frame through continuous pixel coordinates `(u, v)`.
+    pub fn pixel_ray(&self, u: f64, v: f64) -> Vector3<f64> {
+        let (x, y) = self.intrinsics.pixel_to_normalised(u, v);
+        (self.pose.rotation.transpose() * Vector3::new(x, y, 1.0)).normalize()
+    }
+
+    /// Camera centre in the reference frame, metres.
+    pub fn centre(&self) -> Vector3<f64> {
+        self.pose.centre()
+    }
+
+    /// This camera expressed in the object frame when the turntable is at `degrees`
+    /// (the camera's pose is given in the rig frame).
+    pub fn for_turntable_angle(&self, degrees: f64) -> CameraModel {
+        CameraModel { pose: self.pose.for_turntable_angle(degrees), ..*self }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cam() -> CameraModel {
+        CameraModel {
+            width: 640,
+            height: 480,
+            intrinsics: Intrinsics { fx: 800.0, fy: 800.0, cx: 320.0, cy: 240.0, skew: 0.0, k1: -0.1, k2: 0.01 },
+            pose: Pose::look_at(Vector3::new(0.0, -0.5, 0.2), Vector3::new(0.0, 0.0, 0.05), Vector3::z()),
+        }
+    }
+
+    #[test]
+    fn look_at_centres_the_target() {
+        let c = cam();
+        let q = c.project(&Vector3::new(0.0, 0.0, 0.05)).expect("in front");
+        assert!((q.x - 320.0).abs() < 1e-9 && (q.y - 240.0).abs() < 1e-9);
+        // Up in the world is up in the image (smaller v).
+        let up = c.project(&Vector3::new(0.0, 0.0, 0.1)).expect("in front");
+        assert!(up.y < 240.0);
+        assert!((c.centre() - Vector3::new(0.0, -0.5, 0.2)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn pixel_ray_inverts_projection_with_distortion() {
+        let c = cam();
+        let p = Vector3::new(0.03, 0.02, 0.09);
+        let q = c.project(&p).expect("in front");
+        let ray = c.pixel_ray(q.x, q.y);
+        let expected = (p - c.centre()).normalize();
+        assert!((ray - expected).norm() < 1e-9, "{ray} vs {expected}");
+    }
+
+    #[test]
+    fn projection_matrix_matches_project_without_distortion() {
+        let mut c = cam();
+        c.intrinsics.k1 = 0.0;
+        c.intrinsics.k2 = 0.0;
+        let p = Vector3::new(0.01, -0.02, 0.03);
+        let h = c.projection_matrix() * p.push(1.0);
+        let q = c.project(&p).expect("in front");
+        assert!((h.x / h.z - q.x).abs() < 1e-9 && (h.y / h.z - q.y).abs() < 1e-9);
+    }
+}

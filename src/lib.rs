@@ -1,0 +1,19 @@
+//! scanrig: drives a 3D scanner rig (turntable, lights, lasers, projector, cameras) and reconstructs
+//! in process.
+//!
+//! Layers, each with one job; data flows one way: [`devices`] -> [`acquisition`] -> [`pipeline`].
+//! - [`config`]: the rig file.
+//! - [`devices`]: device traits, simulated and real drivers, the registry.
+//! - [`sim`]: the simulated rig's world (scene, renderer, ground truth).
+//! - [`acquisition`]: scan sequences.
+//! - [`pipeline`]: reconstruction, pure functions over frames and cameras.
+//! - [`geometry`]: camera models and frames.
+//! - [`scan`]: one whole scan, from rig file to files on disk.
+
+pub mod acquisition;
+pub mod config;
+pub mod devices;
+pub mod geometry;
+pub mod pipeline;
+pub mod scan;
+pub mod sim;

@@ -1,0 +1,1 @@
+//! Reconstruction: pure functions over frames and cameras. (Being written.)

@@ -1,0 +1,1 @@
+//! One whole scan. (Being written.)
