@@ -1,1 +1,126 @@
+use std::path::Path;
 
+use super::*;
+
+const MINIMAL: &str = r#"
+[rig]
+name = "t"
+
+[turntable]
+kind = "sim"
+
+[lights]
+kind = "sim"
+[[lights.light]]
+position_m = [0.1, -0.4, 0.2]
+
+[camera]
+kind = "sim"
+width = 64
+height = 48
+[camera.calibration.intrinsics]
+fx = 80.0
+fy = 80.0
+cx = 32.0
+cy = 24.0
+[camera.calibration.pose]
+eye_m = [0.0, -0.45, 0.2]
+target_m = [0.0, 0.0, 0.03]
+
+[sim]
+scene = "sphere"
+
+[scan]
+positions = 4
+lights = [0]
+
+[reconstruction]
+method = "space-carving"
+bbox_min_m = [-0.05, -0.05, 0.0]
+bbox_max_m = [0.05, 0.05, 0.1]
+resolution = 16
+"#;
+
+#[test]
+fn minimal_rig_parses() {
+    let c = parse(MINIMAL, Path::new("minimal.toml")).expect("valid");
+    assert_eq!(c.scan.positions, 4);
+    assert_eq!(c.camera.model().width, 64);
+}
+
+#[test]
+fn every_shipped_config_parses_and_validates() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+    let mut files = Vec::new();
+    let mut stack = vec![root];
+    while let Some(dir) = stack.pop() {
+        for entry in std::fs::read_dir(&dir).expect("config dir readable") {
+            let path = entry.expect("entry").path();
+            if path.is_dir() {
+                stack.push(path);
+            } else if path.extension().is_some_and(|e| e == "toml") {
+                files.push(path);
+            }
+        }
+    }
+    assert!(!files.is_empty(), "no config files found");
+    for f in files {
+        if let Err(e) = load(&f) {
+            panic!("{e}");
+        }
+    }
+}
+
+#[test]
+fn unknown_key_is_reported_with_its_line() {
+    let text = MINIMAL.replace("positions = 4", "positions = 4\npositoins = 5");
+    let err = parse(&text, Path::new("rig.toml")).expect_err("unknown key");
+    let line = text.lines().position(|l| l.starts_with("positoins")).expect("line") + 1;
+    match &err {
+        ConfigError::Parse { line: l, message, .. } => {
+            assert_eq!(*l, line, "{err}");
+            assert!(message.contains("positoins"), "{message}");
+        }
+        other => panic!("expected a parse error, got {other}"),
+    }
+    assert!(err.to_string().starts_with(&format!("rig.toml:{line}:")), "{err}");
+}
+
+#[test]
+fn unknown_device_kind_is_reported() {
+    let text = MINIMAL.replace("[turntable]\nkind = \"sim\"", "[turntable]\nkind = \"warp-drive\"");
+    let err = parse(&text, Path::new("rig.toml")).expect_err("unknown kind");
+    let msg = err.to_string();
+    assert!(msg.contains("warp-drive") && msg.contains("rig.toml:"), "{msg}");
+}
+
+#[test]
+fn validate_reports_every_problem_with_lines() {
+    let text = MINIMAL
+        .replace("positions = 4", "positions = 0")
+        .replace("resolution = 16", "resolution = 1")
+        .replace("lights = [0]", "lights = [0, 3]")
+        .replace("scene = \"sphere\"", "scene = \"teapot\"");
+    let err = parse(&text, Path::new("rig.toml")).expect_err("invalid");
+    let ConfigError::Invalid { problems, .. } = &err else { panic!("expected Invalid, got {err}") };
+    let line_of = |needle: &str| text.lines().position(|l| l.trim_start().starts_with(needle)).map(|i| i + 1);
+    let expect = [
+        ("scan.positions", line_of("positions")),
+        ("reconstruction.resolution", line_of("resolution")),
+        ("scan.lights.1", line_of("lights = [0, 3]")),
+        ("sim.scene", line_of("scene")),
+    ];
+    for (key, line) in expect {
+        let p = problems.iter().find(|p| p.key == key).unwrap_or_else(|| panic!("no problem for {key}: {err}"));
+        assert_eq!(p.line, line, "{key}: {err}");
+    }
+    assert_eq!(problems.len(), 4, "{err}");
+}
+
+#[test]
+fn bad_toml_syntax_names_file_and_line() {
+    let text = MINIMAL.replace("positions = 4", "positions = = 4");
+    let err = parse(&text, Path::new("broken.toml")).expect_err("syntax");
+    let line = text.lines().position(|l| l.contains("= = 4")).expect("line") + 1;
+    assert!(err.to_string().starts_with(&format!("broken.toml:{line}:")), "{err}");
+}

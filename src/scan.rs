@@ -1,1 +1,0 @@
-//! One whole scan. (Being written.)

@@ -1,0 +1,168 @@
+//! One whole job, from inputs to files on disk: [`run_scan`] drives a rig (acquisition on the thread
+//! that owns the devices, reconstruction on this one as views arrive); `reconstruct` runs the same
+//! pipeline on a calibrated image set on disk. Both write the same outputs (see [`output`]).
+
+pub mod output;
+pub mod report;
+
+use std::path::{Path, PathBuf};
+use std::sync::mpsc;
+use std::time::Instant;
+
+use crate::acquisition::{self, AcquisitionError, CancelToken, CapturedView, Progress};
+use crate::config::RigConfig;
+use crate::devices::{build_rig, DeviceError};
+use crate::geometry::{CameraModel, VoxelGrid};
+use crate::pipeline::export::ExportError;
+use crate::pipeline::occupancy::Occupancy;
+use crate::pipeline::silhouette::{extract_silhouette, Mask, SilhouetteParams};
+use crate::pipeline::space_carving::SpaceCarver;
+
+pub use output::OutputDir;
+pub use report::{GroundTruth, Report, Timings};
+
+/// Why a scan failed. Frames captured before the failure stay in `frames/`; no `report.json` is
+/// written, so a failed scan is never mistaken for a result.
+#[derive(Debug, thiserror::Error)]
+pub enum ScanError {
+    /// The output directory cannot be used.
+    #[error("output directory {path}: {what}")]
+    OutputDir {
+        /// The directory.
+        path: PathBuf,
+        /// What failed.
+        what: &'static str,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A device could not be opened.
+    #[error("cannot open the rig's devices")]
+    OpenDevices(#[source] DeviceError),
+    /// The acquisition stopped.
+    #[error("acquisition failed")]
+    Acquisition(#[source] AcquisitionError),
+    /// A result file could not be written.
+    #[error("cannot write results")]
+    Export(#[source] ExportError),
+    /// The acquisition thread died.
+    #[error("the acquisition thread panicked")]
+    AcquisitionPanicked,
+}
+
+/// What a running scan tells its caller.
+#[derive(Debug, Clone)]
+pub enum ScanEvent {
+    /// Acquisition progress.
+    Acquisition(Progress),
+    /// A view went through the pipeline.
+    ViewProcessed {
+        /// 0-based position.
+        position: usize,
+        /// Voxels still occupied after carving with it.
+        occupied: u64,
+    },
+    /// The pipeline moved on to a final stage (`mesh`, `export`, `evaluate`).
+    Stage(&'static str),
+}
+
+/// The silhouette parameters of a rig file.
+pub fn silhouette_params(config: &RigConfig) -> SilhouetteParams {
+    let s = &config.reconstruction.silhouette;
+    SilhouetteParams {
+        threshold: s.threshold as f32,
+        background: s.background,
+        dilate_px: s.dilate_px,
+        erode_px: s.erode_px,
+    }
+}
+
+/// Scan the rig described by `config` and write the results into `out`.
+pub fn run_scan(
+    config: &RigConfig,
+    out: &Path,
+    cancel: &CancelToken,
+    events: &mut dyn FnMut(ScanEvent),
+) -> Result<Report, ScanError> {
+    let started = Instant::now();
+    let out = OutputDir::prepare(out)?;
+    let mut rig = build_rig(config).map_err(ScanError::OpenDevices)?;
+    let sim = rig.sim.clone();
+    let camera = config.camera.model();
+    let recon = &config.reconstruction;
+    let grid = VoxelGrid::from_resolution(&recon.bbox(), recon.resolution);
+    let params = silhouette_params(config);
+    let mut carver = SpaceCarver::new(grid);
+    let mut timings = Timings::default();
+    let mut views: Vec<(CameraModel, Mask)> = Vec::with_capacity(config.scan.positions as usize);
+
+    let (tx, rx) = mpsc::sync_channel::<CapturedView>(4);
+    let (progress_tx, progress_rx) = mpsc::channel::<Progress>();
+    let plan = config.scan.clone();
+    let acq_cancel = cancel.clone();
+    // The acquisition thread owns the devices for the whole sequence.
+    let acquisition = std::thread::Builder::new()
+        .name("acquisition".into())
+        .spawn(move || {
+            let t = Instant::now();
+            let result = acquisition::run_turntable_scan(&mut rig, &plan, &tx, &acq_cancel, &mut |p| {
+                let _ = progress_tx.send(p.clone());
+            });
+            (result, t.elapsed().as_secs_f64())
+        })
+        .map_err(|source| ScanError::OutputDir {
+            path: out.path().to_owned(),
+            what: "cannot start the acquisition thread",
+            source,
+        })?;
+
+    let mut pipeline_error = None;
+    for view in rx.iter() {
+        for p in progress_rx.try_iter() {
+            events(ScanEvent::Acquisition(p));
+        }
+        if let Err(e) = out.write_frame(&view) {
+            pipeline_error = Some(e);
+            break;
+        }
+        let t = Instant::now();
+        let mask = extract_silhouette(&view.frame.image, &params);
+        timings.silhouette += t.elapsed().as_secs_f64();
+        let cam = camera.for_turntable_angle(view.angle_deg);
+        let t = Instant::now();
+        carver.add_view(&cam, &mask);
+        timings.carve += t.elapsed().as_secs_f64();
+        events(ScanEvent::ViewProcessed { position: view.position, occupied: carver.occupancy().count() });
+        views.push((cam, mask));
+    }
+    // Dropping the receiver makes a still-running acquisition stop with PipelineGone.
+    drop(rx);
+    let (acq_result, capture_s) = acquisition.join().map_err(|_| ScanError::AcquisitionPanicked)?;
+    for p in progress_rx.try_iter() {
+        events(ScanEvent::Acquisition(p));
+    }
+    if let Some(e) = pipeline_error {
+        return Err(e);
+    }
+    let summary = acq_result.map_err(ScanError::Acquisition)?;
+    timings.capture = capture_s;
+
+    let truth = sim.as_ref().map(|world| {
+        events(ScanEvent::Stage("evaluate"));
+        let scene = world.scene();
+        (config.sim.as_ref().map_or_else(String::new, |s| s.scene.clone()), Occupancy::from_fn(grid, |p| scene.contains(&p)))
+    });
+    let report = out.write_results(output::Results {
+        source: config.rig.name.clone(),
+        method: recon.method.name(),
+        occupancy: carver.occupancy(),
+        views: &views,
+        smooth_radius: recon.mesh.smooth_radius,
+        truth: truth.as_ref().map(|(name, occ)| (name.as_str(), occ)),
+        frames: Some(summary),
+        timings,
+        started,
+        events,
+    })?;
+    Ok(report)
+}

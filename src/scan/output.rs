@@ -1,0 +1,178 @@
+//! The output directory of a scan or reconstruction:
+//!
+//! ```text
+//! DIR/frames/pos_000.png ...   captured frames (scans only), written as they arrive
+//! DIR/model.ply                binary PLY triangle mesh
+//! DIR/model.stl                binary STL
+//! DIR/model.obj                OBJ
+//! DIR/voxels.ply               occupied voxel centres as a point cloud
+//! DIR/report.json              written last: a directory is a finished result iff it has one
+//! ```
+//! Every file is written atomically (temporary file, fsync, rename), so a crash or a full disk never
+//! leaves a half-written file under a final name.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use super::report::{GroundTruth, Report, Timings};
+use super::{ScanError, ScanEvent};
+use crate::acquisition::{AcquisitionSummary, CapturedView};
+use crate::geometry::CameraModel;
+use crate::pipeline::evaluate::{iou_and_containment, reprojection_iou};
+use crate::pipeline::export::{self, write_atomic, ExportError};
+use crate::pipeline::mesh::marching_cubes;
+use crate::pipeline::occupancy::Occupancy;
+use crate::pipeline::silhouette::Mask;
+
+/// A prepared output directory.
+#[derive(Debug)]
+pub struct OutputDir {
+    path: PathBuf,
+}
+
+/// Everything [`OutputDir::write_results`] needs.
+pub struct Results<'a> {
+    /// Rig name or data set.
+    pub source: String,
+    /// Method name.
+    pub method: &'static str,
+    /// The carved occupancy.
+    pub occupancy: &'a Occupancy,
+    /// Cameras (object frame) and silhouettes of the views used.
+    pub views: &'a [(CameraModel, Mask)],
+    /// Occupancy smoothing radius for the mesh, voxels.
+    pub smooth_radius: u32,
+    /// Scene name and true occupancy on the same grid, for simulated rigs.
+    pub truth: Option<(&'a str, &'a Occupancy)>,
+    /// Acquisition counters (scans only).
+    pub frames: Option<AcquisitionSummary>,
+    /// Timings so far.
+    pub timings: Timings,
+    /// When the job started.
+    pub started: Instant,
+    /// Progress sink.
+    pub events: &'a mut dyn FnMut(ScanEvent),
+}
+
+impl std::fmt::Debug for Results<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Results").field("source", &self.source).field("method", &self.method).finish_non_exhaustive()
+    }
+}
+
+impl OutputDir {
+    /// Create `path` if needed, check that it is writable, and remove a previous `report.json` and
+    /// previous frames so that nothing from an earlier run is presented as this run's result.
+    pub fn prepare(path: &Path) -> Result<OutputDir, ScanError> {
+        let err = |what: &'static str| move |source| ScanError::OutputDir { path: path.to_owned(), what, source };
+        std::fs::create_dir_all(path).map_err(err("cannot create it"))?;
+        let probe = path.join(".scanrig-write-test");
+        std::fs::write(&probe, b"ok").map_err(err("is not writable"))?;
+        std::fs::remove_file(&probe).map_err(err("is not writable"))?;
+        match std::fs::remove_file(path.join("report.json")) {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) => return Err(err("cannot remove the previous report.json")(e)),
+        }
+        let frames = path.join("frames");
+        if frames.is_dir() {
+            for entry in std::fs::read_dir(&frames).map_err(err("cannot list frames/"))? {
+                let entry = entry.map_err(err("cannot list frames/"))?;
+                let name = entry.file_name();
+                let name = name.to_string_lossy();
+                if name.starts_with("pos_") && name.ends_with(".png") {
+                    std::fs::remove_file(entry.path()).map_err(err("cannot remove a previous frame"))?;
+                }
+            }
+        }
+        Ok(OutputDir { path: path.to_owned() })
+    }
+
+    /// The directory.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Write one captured frame as `frames/pos_NNN.png`.
+    pub fn write_frame(&self, view: &CapturedView) -> Result<(), ScanError> {
+        let dir = self.path.join("frames");
+        std::fs::create_dir_all(&dir).map_err(|source| ScanError::OutputDir {
+            path: dir.clone(),
+            what: "cannot create it",
+            source,
+        })?;
+        let file = dir.join(format!("pos_{:03}.png", view.position));
+        let mut png = Vec::with_capacity(view.frame.image.len() / 2);
+        view.frame
+            .image
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .map_err(|e| ScanError::Export(ExportError::Encode { path: file.clone(), detail: e.to_string() }))?;
+        write_atomic(&file, &png).map_err(ScanError::Export)
+    }
+
+    /// Mesh, export, evaluate, and write `report.json` last.
+    pub fn write_results(&self, r: Results<'_>) -> Result<Report, ScanError> {
+        let Results { source, method, occupancy, views, smooth_radius, truth, frames, mut timings, started, events } =
+            r;
+        events(ScanEvent::Stage("mesh"));
+        let t = Instant::now();
+        let mesh = marching_cubes(occupancy, smooth_radius);
+        timings.mesh = t.elapsed().as_secs_f64();
+
+        events(ScanEvent::Stage("export"));
+        let t = Instant::now();
+        let p = |name: &str| self.path.join(name);
+        export::write_ply_mesh(&p("model.ply"), &mesh).map_err(ScanError::Export)?;
+        export::write_stl(&p("model.stl"), &mesh).map_err(ScanError::Export)?;
+        export::write_obj(&p("model.obj"), &mesh).map_err(ScanError::Export)?;
+        let centres: Vec<[f32; 3]> = occupancy.occupied_centres().collect();
+        export::write_ply_points(&p("voxels.ply"), &centres, None).map_err(ScanError::Export)?;
+        timings.export = t.elapsed().as_secs_f64();
+
+        events(ScanEvent::Stage("evaluate"));
+        let reprojection: Vec<f64> = views.iter().map(|(cam, mask)| reprojection_iou(occupancy, cam, mask)).collect();
+        let mean = if reprojection.is_empty() { 0.0 } else { reprojection.iter().sum::<f64>() / reprojection.len() as f64 };
+        let grid = occupancy.grid();
+        let voxel_volume = grid.voxel_size.powi(3);
+        let ground_truth = truth.map(|(scene, truth)| {
+            let (iou, containment) = iou_and_containment(occupancy, truth);
+            GroundTruth {
+                scene: scene.to_owned(),
+                iou,
+                containment,
+                voxels: truth.count(),
+                volume_m3: truth.count() as f64 * voxel_volume,
+            }
+        });
+        let mut files = vec!["model.ply".to_owned(), "model.stl".into(), "model.obj".into(), "voxels.ply".into()];
+        if frames.is_some() {
+            files.push("frames/".into());
+        }
+        files.push("report.json".into());
+        timings.total = started.elapsed().as_secs_f64();
+        let bbox = grid.bbox();
+        let report = Report {
+            scanrig_version: env!("CARGO_PKG_VERSION"),
+            source,
+            method,
+            views: views.len(),
+            resolution: grid.dims,
+            voxel_size_m: grid.voxel_size,
+            bbox_m: [bbox.min, bbox.max],
+            occupied_voxels: occupancy.count(),
+            volume_m3: occupancy.count() as f64 * voxel_volume,
+            mesh_triangles: mesh.triangles.len(),
+            timings_s: timings,
+            reprojection_iou: reprojection,
+            reprojection_iou_mean: mean,
+            frames,
+            ground_truth,
+            files,
+        };
+        let json = serde_json::to_vec_pretty(&report).map_err(|e| {
+            ScanError::Export(ExportError::Encode { path: p("report.json"), detail: e.to_string() })
+        })?;
+        write_atomic(&p("report.json"), &json).map_err(ScanError::Export)?;
+        Ok(report)
+    }
+}

@@ -1,0 +1,76 @@
+//! `report.json`: what a scan or reconstruction did and how well, machine-readable.
+
+use serde::Serialize;
+
+/// The report written as `report.json` next to a scan's results.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    /// scanrig version that wrote it.
+    pub scanrig_version: &'static str,
+    /// Rig name, or the data set directory for `reconstruct`.
+    pub source: String,
+    /// Reconstruction method (`space-carving`).
+    pub method: &'static str,
+    /// Number of views used.
+    pub views: usize,
+    /// Grid size in voxels [nx, ny, nz].
+    pub resolution: [usize; 3],
+    /// Voxel edge, metres.
+    pub voxel_size_m: f64,
+    /// Working volume in the object frame, metres: [[min], [max]].
+    pub bbox_m: [[f64; 3]; 2],
+    /// Occupied voxels in the result.
+    pub occupied_voxels: u64,
+    /// Volume of the result, cubic metres.
+    pub volume_m3: f64,
+    /// Triangles in the mesh.
+    pub mesh_triangles: usize,
+    /// Wall-clock time per stage, seconds.
+    pub timings_s: Timings,
+    /// Silhouette re-projection IoU per view (voxel footprints splatted), in view order.
+    pub reprojection_iou: Vec<f64>,
+    /// Mean of `reprojection_iou`.
+    pub reprojection_iou_mean: f64,
+    /// Frame counters (scans only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub frames: Option<crate::acquisition::AcquisitionSummary>,
+    /// Comparison with the simulated scene (simulated rigs only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ground_truth: Option<GroundTruth>,
+    /// Files written, relative to the output directory.
+    pub files: Vec<String>,
+}
+
+/// Stage timings, seconds of wall-clock time. Stages overlap in a scan (the pipeline runs while the
+/// rig captures), so they need not add up to `total`.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Timings {
+    /// Moving, switching and capturing (the acquisition thread's busy time), or loading images.
+    pub capture: f64,
+    /// Silhouette extraction.
+    pub silhouette: f64,
+    /// Carving.
+    pub carve: f64,
+    /// Surface extraction.
+    pub mesh: f64,
+    /// Writing results.
+    pub export: f64,
+    /// Start to finish.
+    pub total: f64,
+}
+
+/// How the result compares with the simulated scene's true occupancy on the same grid
+/// (a voxel is truly occupied when its centre is inside the solid).
+#[derive(Debug, Clone, Serialize)]
+pub struct GroundTruth {
+    /// The simulated scene.
+    pub scene: String,
+    /// Intersection over union of result and truth voxels.
+    pub iou: f64,
+    /// Fraction of truth voxels inside the result (1.0 = nothing of the object was carved away).
+    pub containment: f64,
+    /// Truth voxels.
+    pub voxels: u64,
+    /// Volume of the truth voxels, cubic metres.
+    pub volume_m3: f64,
+}
