@@ -1,0 +1,180 @@
+//! The shared state of the simulated world: the immutable scene and renderer, and the mutable rig
+//! state (turntable angle, lights, lasers, projector pattern) that the simulated drivers change and
+//! the simulated cameras see.
+
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Instant;
+
+use nalgebra::Vector3;
+
+use super::render::{Lighting, LineLaser, PointLight, ProjectorModel, Renderer};
+use super::scene::Scene;
+use super::SimError;
+use crate::config::{ProjectorConfig, RigConfig, SimConfig};
+use crate::devices::{DeviceError, Pattern};
+
+/// The rig state at one instant, as a camera exposing then would see it.
+#[derive(Debug, Clone)]
+pub struct WorldState {
+    /// Turntable angle, degrees (counter-clockwise seen from above; any real value).
+    pub turntable_deg: f64,
+    /// Level of each white light, 0..=1, by index.
+    pub light_levels: Vec<f32>,
+    /// Whether each line laser is on, by index.
+    pub lasers_on: Vec<bool>,
+    /// The projector's current pattern; `None` = blank (black).
+    pub pattern: Option<Pattern>,
+    /// Number of changes made to the state so far.
+    pub changes: u64,
+    /// When the state last changed (monotonic).
+    pub last_change: Instant,
+}
+
+#[derive(Debug)]
+struct Inner {
+    renderer: Renderer,
+    state: Mutex<WorldState>,
+}
+
+/// The simulated world, shared by every simulated device of a rig (cheap to clone: clones share
+/// the state). All state changes are atomic and counted.
+#[derive(Debug, Clone)]
+pub struct SimWorld {
+    inner: Arc<Inner>,
+}
+
+impl SimWorld {
+    /// A world with `scene` under `lighting`, everything off, the turntable at 0°.
+    pub fn new(scene: Scene, lighting: Lighting) -> SimWorld {
+        let state = WorldState {
+            turntable_deg: 0.0,
+            light_levels: vec![0.0; lighting.lights.len()],
+            lasers_on: vec![false; lighting.lasers.len()],
+            pattern: None,
+            changes: 0,
+            last_change: Instant::now(),
+        };
+        SimWorld { inner: Arc::new(Inner { renderer: Renderer::new(scene, lighting), state: Mutex::new(state) }) }
+    }
+
+    /// Build the world from the rig file: the `[sim]` scene, the `[lights]` geometry and the
+    /// `[projector]` calibration.
+    pub fn from_config(sim: &SimConfig, rig: &RigConfig) -> Result<SimWorld, DeviceError> {
+        let scene = Scene::preset(&sim.scene, sim.scale).map_err(|e| e.to_device_error("sim", "scene"))?;
+        let (lights, lasers) = match &rig.lights {
+            None => (Vec::new(), Vec::new()),
+            Some(l) => (
+                l.lights
+                    .iter()
+                    .map(|l| PointLight { position_m: Vector3::from(l.position_m), intensity: l.intensity })
+                    .collect(),
+                l.lasers
+                    .iter()
+                    .map(|l| {
+                        let n = Vector3::from(l.plane_normal);
+                        let norm = n.norm();
+                        if !(norm.is_finite() && norm > 0.0) {
+                            return Err(SimError::DegenerateLaserPlane.to_device_error("lights", "plane_normal"));
+                        }
+                        Ok(LineLaser { origin_m: Vector3::from(l.origin_m), normal: n / norm, colour: l.colour })
+                    })
+                    .collect::<Result<Vec<_>, _>>()?,
+            ),
+        };
+        let projector = rig.projector.as_ref().map(|p| match p {
+            ProjectorConfig::Sim(p) => {
+                ProjectorModel { model: p.calibration.model(p.width, p.height), intensity: p.intensity }
+            }
+        });
+        if !(sim.ambient.is_finite() && (0.0..=1.0).contains(&sim.ambient)) {
+            return Err(SimError::InvalidAmbient { ambient: sim.ambient }.to_device_error("sim", "ambient"));
+        }
+        let lighting = Lighting { lights, lasers, projector, ambient: sim.ambient, background: sim.background };
+        tracing::debug!(scene = %sim.scene, scale = sim.scale, "simulated world built");
+        Ok(SimWorld::new(scene, lighting))
+    }
+
+    /// The scene: the ground truth, object frame.
+    pub fn scene(&self) -> &Scene {
+        self.inner.renderer.scene()
+    }
+
+    /// The renderer (scene and lighting).
+    pub fn renderer(&self) -> &Renderer {
+        &self.inner.renderer
+    }
+
+    /// A copy of the current state.
+    pub fn snapshot(&self) -> WorldState {
+        self.lock().clone()
+    }
+
+    /// Number of state changes so far.
+    pub fn change_count(&self) -> u64 {
+        self.lock().changes
+    }
+
+    /// When the state last changed.
+    pub fn last_change(&self) -> Instant {
+        self.lock().last_change
+    }
+
+    /// Set the turntable angle, degrees.
+    pub fn set_turntable_angle(&self, degrees: f64) {
+        self.change(|s| s.turntable_deg = degrees);
+    }
+
+    /// Set white light `index` to `level` (0..=1).
+    pub fn set_light(&self, index: usize, level: f32) -> Result<(), SimError> {
+        if !(level.is_finite() && (0.0..=1.0).contains(&level)) {
+            return Err(SimError::InvalidLevel { level });
+        }
+        let count = self.inner.renderer.lighting().lights.len();
+        if index >= count {
+            return Err(SimError::NoSuchLight { index, count });
+        }
+        self.change(|s| s.light_levels[index] = level);
+        Ok(())
+    }
+
+    /// Switch line laser `index` on or off.
+    pub fn set_laser(&self, index: usize, on: bool) -> Result<(), SimError> {
+        let count = self.inner.renderer.lighting().lasers.len();
+        if index >= count {
+            return Err(SimError::NoSuchLaser { index, count });
+        }
+        self.change(|s| s.lasers_on[index] = on);
+        Ok(())
+    }
+
+    /// Show `pattern` on the projector (`None` = blank). The pattern must match the projector's
+    /// resolution and hold `3 · width · height` bytes.
+    pub fn set_pattern(&self, pattern: Option<Pattern>) -> Result<(), SimError> {
+        if let Some(p) = &pattern {
+            let proj = self.inner.renderer.lighting().projector.as_ref().ok_or(SimError::NoProjector)?;
+            let (w, h) = (proj.model.width, proj.model.height);
+            if p.width != w || p.height != h || p.rgb.len() != 3 * w as usize * h as usize {
+                return Err(SimError::PatternSize {
+                    expected: (w, h),
+                    width: p.width,
+                    height: p.height,
+                    bytes: p.rgb.len(),
+                });
+            }
+        }
+        self.change(|s| s.pattern = pattern);
+        Ok(())
+    }
+
+    fn change(&self, f: impl FnOnce(&mut WorldState)) {
+        let mut s = self.lock();
+        f(&mut s);
+        s.changes += 1;
+        s.last_change = Instant::now();
+    }
+
+    fn lock(&self) -> MutexGuard<'_, WorldState> {
+        // The state is plain data that every writer leaves consistent, so a poisoned lock is safe to use.
+        self.inner.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
