@@ -8,10 +8,12 @@
 //! - [`acquisition`]: scan sequences.
 //! - [`pipeline`]: reconstruction, pure functions over frames and cameras.
 //! - [`geometry`]: camera models and frames.
+//! - [`dataset`]: calibrated image sets on disk (cameras, view selections, masks).
 //! - [`scan`]: one whole scan, from rig file to files on disk.
 
 pub mod acquisition;
 pub mod config;
+pub mod dataset;
 pub mod devices;
 pub mod geometry;
 pub mod pipeline;

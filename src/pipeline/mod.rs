@@ -1,1 +1,20 @@
-//! Reconstruction: pure functions over frames and cameras. (Being written.)
+//! Reconstruction: pure functions over images and cameras. Nothing here touches devices, the
+//! simulated rig, acquisition or configuration: callers pass plain parameter structs.
+//!
+//! - [`silhouette`]: background-difference silhouettes with a disc closing.
+//! - [`occupancy`]: brick-compressed voxel occupancy, overlap measures.
+//! - [`space_carving`]: the visual hull, dense reference and hierarchical incremental carver.
+//! - [`mesh`]: watertight surface extraction from an occupancy.
+//! - [`export`]: PLY / STL / OBJ writers, written atomically.
+
+pub mod export;
+pub mod mesh;
+pub mod occupancy;
+pub mod silhouette;
+pub mod space_carving;
+
+pub use export::ExportError;
+pub use mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
+pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
+pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
+pub use space_carving::{carve_dense, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};

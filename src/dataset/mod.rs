@@ -1,0 +1,582 @@
+//! Calibrated image sets on disk: cameras, view selections, images and silhouette masks.
+//!
+//! # Calibration files
+//! - **Middlebury `*_par.txt`**: the first line is the view count `n`; then one line per view,
+//!   `name k11 k12 k13 k21 k22 k23 k31 k32 k33 r11 r12 r13 r21 r22 r23 r31 r32 r33 t1 t2 t3`,
+//!   with `P = K [R | t]` mapping the data set's world frame (metres) to pixels, origin top-left.
+//! - **Projection matrices** (any other file): one line per image, `name p11 p12 p13 p14 p21 .. p34`
+//!   (the 3x4 matrix row by row, 12 numbers). `P` is decomposed into `K`, `R`, `t` with an RQ
+//!   decomposition (`K` upper triangular with a positive diagonal, `R` a rotation). Blank lines and
+//!   lines starting with `#` are ignored.
+//!
+//! Cameras have no lens distortion in either format. Image names are relative to the data set directory.
+//!
+//! # View selections
+//! Either a file with one image name per line (blank lines and `#` comments ignored), or a
+//! comma-separated list of names.
+//!
+//! # Masks
+//! Either read from a directory (a PNG with the image's stem, `stem.png`; any non-zero pixel is
+//! object), or extracted from the images with [`SilhouetteParams`].
+
+use std::path::{Path, PathBuf};
+
+use image::RgbImage;
+use nalgebra::{Matrix3, Vector3};
+
+use crate::geometry::{Aabb, CameraModel, Intrinsics, Pose};
+use crate::pipeline::{extract_silhouette, Mask, SilhouetteParams, View};
+
+/// Errors of data set loading; each names the file and, for text files, the 1-based line.
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    /// A file could not be read.
+    #[error("cannot read {path}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// An image could not be decoded (or is missing).
+    #[error("cannot load image {path}")]
+    Image {
+        /// The image file.
+        path: PathBuf,
+        /// The decoder's error.
+        #[source]
+        source: image::ImageError,
+    },
+    /// An image listed in the calibration file does not exist.
+    #[error("{calibration}:{line}: image {path} does not exist")]
+    MissingImage {
+        /// The calibration file.
+        calibration: PathBuf,
+        /// Line of the entry.
+        line: usize,
+        /// The missing image.
+        path: PathBuf,
+    },
+    /// A line has the wrong number of values.
+    #[error("{path}:{line}: expected {expected} values, found {found}")]
+    ValueCount {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+        /// Values expected (including the name).
+        expected: usize,
+        /// Values found.
+        found: usize,
+    },
+    /// A value is not a number.
+    #[error("{path}:{line}: {token:?} is not a number")]
+    BadNumber {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+        /// The offending token.
+        token: String,
+        /// The parse error.
+        #[source]
+        source: std::num::ParseFloatError,
+    },
+    /// The view count line is not a non-negative integer.
+    #[error("{path}:{line}: {token:?} is not a view count")]
+    BadCount {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+        /// The offending token.
+        token: String,
+        /// The parse error.
+        #[source]
+        source: std::num::ParseIntError,
+    },
+    /// A value is infinite or NaN.
+    #[error("{path}:{line}: non-finite value {token:?}")]
+    NonFinite {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+        /// The offending token.
+        token: String,
+    },
+    /// The declared view count does not match the number of view lines.
+    #[error("{path}: declares {declared} views but lists {found}")]
+    ViewCount {
+        /// The file.
+        path: PathBuf,
+        /// Count on the first line.
+        declared: usize,
+        /// View lines found.
+        found: usize,
+    },
+    /// The projection matrix cannot be decomposed (rank-deficient left 3x3 block).
+    #[error("{path}:{line}: degenerate projection matrix")]
+    DegenerateProjection {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+    },
+    /// The calibration file lists no view.
+    #[error("{path}: no views")]
+    NoViews {
+        /// The file.
+        path: PathBuf,
+    },
+    /// A selected view is not in the calibration.
+    #[error("{source_name}: view {name:?} is not in the calibration")]
+    UnknownView {
+        /// Where the selection came from (a file, or the list itself).
+        source_name: String,
+        /// The unknown name.
+        name: String,
+    },
+    /// A mask's size differs from its image's.
+    #[error("{path}: mask is {width}x{height} px but the image is {expected_width}x{expected_height} px")]
+    ImageSize {
+        /// The mask file.
+        path: PathBuf,
+        /// Mask width, px.
+        width: u32,
+        /// Mask height, px.
+        height: u32,
+        /// Image width, px.
+        expected_width: u32,
+        /// Image height, px.
+        expected_height: u32,
+    },
+    /// No calibration file was given and none was found.
+    #[error("{dir}: no calibration file (*_par.txt) found")]
+    NoCalibration {
+        /// The data set directory.
+        dir: PathBuf,
+    },
+    /// No camera sees any part of the bounding box.
+    #[error("no camera sees the bounding box {min:?} .. {max:?}")]
+    BoxUnseen {
+        /// Minimum corner, metres.
+        min: [f64; 3],
+        /// Maximum corner, metres.
+        max: [f64; 3],
+    },
+}
+
+/// One calibrated image, before its size is known.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Calibration {
+    /// Image file name, relative to the data set directory.
+    pub name: String,
+    /// Intrinsics, pixels (no distortion).
+    pub intrinsics: Intrinsics,
+    /// World -> camera, metres.
+    pub pose: Pose,
+    /// Line of the calibration file this came from (1-based).
+    pub line: usize,
+}
+
+impl Calibration {
+    /// The camera for an image of `width x height` pixels.
+    pub fn camera(&self, width: u32, height: u32) -> CameraModel {
+        CameraModel { width, height, intrinsics: self.intrinsics, pose: self.pose }
+    }
+}
+
+fn read_text(path: &Path) -> Result<String, DatasetError> {
+    std::fs::read_to_string(path).map_err(|source| DatasetError::Read { path: path.to_path_buf(), source })
+}
+
+fn parse_numbers(path: &Path, line: usize, tokens: &[&str]) -> Result<Vec<f64>, DatasetError> {
+    tokens
+        .iter()
+        .map(|t| {
+            let v: f64 = t.parse().map_err(|source| DatasetError::BadNumber {
+                path: path.to_path_buf(),
+                line,
+                token: t.to_string(),
+                source,
+            })?;
+            if v.is_finite() {
+                Ok(v)
+            } else {
+                Err(DatasetError::NonFinite { path: path.to_path_buf(), line, token: t.to_string() })
+            }
+        })
+        .collect()
+}
+
+/// Non-blank, non-comment lines with their 1-based numbers.
+fn content_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
+    text.lines().enumerate().map(|(n, l)| (n + 1, l.trim())).filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
+}
+
+/// Parse a Middlebury `*_par.txt` file's text; `path` is used in errors.
+pub fn parse_par(text: &str, path: &Path) -> Result<Vec<Calibration>, DatasetError> {
+    let mut lines = content_lines(text);
+    let (count_line, count_text) = lines.next().ok_or_else(|| DatasetError::NoViews { path: path.to_path_buf() })?;
+    let declared: usize = count_text.parse().map_err(|source| DatasetError::BadCount {
+        path: path.to_path_buf(),
+        line: count_line,
+        token: count_text.to_string(),
+        source,
+    })?;
+    let mut out = Vec::with_capacity(declared);
+    for (line, l) in lines {
+        let tokens: Vec<&str> = l.split_whitespace().collect();
+        if tokens.len() != 22 {
+            return Err(DatasetError::ValueCount { path: path.to_path_buf(), line, expected: 22, found: tokens.len() });
+        }
+        let v = parse_numbers(path, line, &tokens[1..])?;
+        let k = Matrix3::from_row_slice(&v[0..9]);
+        let r = Matrix3::from_row_slice(&v[9..18]);
+        let t = Vector3::new(v[18], v[19], v[20]);
+        if k[(2, 2)] == 0.0 {
+            return Err(DatasetError::DegenerateProjection { path: path.to_path_buf(), line });
+        }
+        out.push(Calibration {
+            name: tokens[0].to_string(),
+            intrinsics: Intrinsics::from_matrix(&k),
+            pose: Pose { rotation: r, translation: t },
+            line,
+        });
+    }
+    if out.len() != declared {
+        return Err(DatasetError::ViewCount { path: path.to_path_buf(), declared, found: out.len() });
+    }
+    if out.is_empty() {
+        return Err(DatasetError::NoViews { path: path.to_path_buf() });
+    }
+    Ok(out)
+}
+
+/// Decompose `P = K [R | t]` (RQ decomposition of the left 3x3 block, `K` with positive diagonal
+/// normalised so `K33 = 1`, `R` a proper rotation). `None` when the block is singular.
+pub fn decompose_projection(p: &nalgebra::Matrix3x4<f64>) -> Option<(Intrinsics, Pose)> {
+    let mut m: Matrix3<f64> = p.fixed_view::<3, 3>(0, 0).into_owned();
+    let mut p4: Vector3<f64> = p.column(3).into_owned();
+    let det = m.determinant();
+    if !det.is_finite() || det.abs() < 1e-300 {
+        return None;
+    }
+    if det < 0.0 {
+        // P is defined up to scale: flip the sign so R comes out a rotation.
+        m = -m;
+        p4 = -p4;
+    }
+    let rows = [m.row(0).transpose(), m.row(1).transpose(), m.row(2).transpose()];
+    let k33 = rows[2].norm();
+    let r3 = rows[2] / k33;
+    let k23 = rows[1].dot(&r3);
+    let v2 = rows[1] - r3 * k23;
+    let k22 = v2.norm();
+    let r2 = v2 / k22;
+    let k13 = rows[0].dot(&r3);
+    let k12 = rows[0].dot(&r2);
+    let v1 = rows[0] - r3 * k13 - r2 * k12;
+    let k11 = v1.norm();
+    let r1 = v1 / k11;
+    if !(k11 > 0.0 && k22 > 0.0 && k33 > 0.0) {
+        return None;
+    }
+    let k = Matrix3::new(k11, k12, k13, 0.0, k22, k23, 0.0, 0.0, k33);
+    let t = k.try_inverse()? * p4;
+    let rotation = Matrix3::from_rows(&[r1.transpose(), r2.transpose(), r3.transpose()]);
+    Some((Intrinsics::from_matrix(&k), Pose { rotation, translation: t }))
+}
+
+/// Parse a projection-matrix file's text (`name p11 .. p34` per line); `path` is used in errors.
+pub fn parse_projections(text: &str, path: &Path) -> Result<Vec<Calibration>, DatasetError> {
+    let mut out = Vec::new();
+    for (line, l) in content_lines(text) {
+        let tokens: Vec<&str> = l.split_whitespace().collect();
+        if tokens.len() != 13 {
+            return Err(DatasetError::ValueCount { path: path.to_path_buf(), line, expected: 13, found: tokens.len() });
+        }
+        let v = parse_numbers(path, line, &tokens[1..])?;
+        let p = nalgebra::Matrix3x4::from_row_slice(&v);
+        let (intrinsics, pose) =
+            decompose_projection(&p).ok_or(DatasetError::DegenerateProjection { path: path.to_path_buf(), line })?;
+        out.push(Calibration { name: tokens[0].to_string(), intrinsics, pose, line });
+    }
+    if out.is_empty() {
+        return Err(DatasetError::NoViews { path: path.to_path_buf() });
+    }
+    Ok(out)
+}
+
+/// Read a calibration file: the Middlebury format when the first content line is a single integer,
+/// projection matrices otherwise.
+pub fn read_calibration(path: &Path) -> Result<Vec<Calibration>, DatasetError> {
+    let text = read_text(path)?;
+    let first = content_lines(&text).next().map(|(_, l)| l.split_whitespace().count() == 1).unwrap_or(false);
+    if first {
+        parse_par(&text, path)
+    } else {
+        parse_projections(&text, path)
+    }
+}
+
+/// Which views to use.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ViewSelection {
+    /// Every calibrated view.
+    All,
+    /// A file with one image name per line.
+    File(PathBuf),
+    /// Image names.
+    Names(Vec<String>),
+}
+
+impl ViewSelection {
+    /// A path to an existing file selects from that file; anything else is a comma-separated list.
+    pub fn parse(spec: &str) -> ViewSelection {
+        let p = Path::new(spec);
+        if p.is_file() {
+            ViewSelection::File(p.to_path_buf())
+        } else {
+            ViewSelection::Names(spec.split(',').map(|s| s.trim().to_string()).filter(|s| !s.is_empty()).collect())
+        }
+    }
+
+    /// Keep the selected calibrations, in the selection's order.
+    pub fn apply(&self, all: Vec<Calibration>) -> Result<Vec<Calibration>, DatasetError> {
+        let (names, source_name): (Vec<String>, String) = match self {
+            ViewSelection::All => return Ok(all),
+            ViewSelection::File(p) => {
+                let text = read_text(p)?;
+                (content_lines(&text).map(|(_, l)| l.to_string()).collect(), p.display().to_string())
+            }
+            ViewSelection::Names(n) => (n.clone(), "view list".to_string()),
+        };
+        names
+            .into_iter()
+            .map(|name| {
+                let stem = |s: &str| Path::new(s).file_stem().map(|x| x.to_os_string());
+                all.iter()
+                    .find(|c| c.name == name || stem(&c.name) == stem(&name))
+                    .cloned()
+                    .ok_or(DatasetError::UnknownView { source_name: source_name.clone(), name })
+            })
+            .collect()
+    }
+}
+
+/// Where masks come from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MaskSource {
+    /// Extract from the images with these parameters.
+    Extract(SilhouetteParams),
+    /// PNGs in this directory, `stem.png`, non-zero = object.
+    Directory(PathBuf),
+}
+
+/// What to load.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DatasetOptions {
+    /// The data set directory (image names are relative to it).
+    pub dir: PathBuf,
+    /// The calibration file; `None` looks for the one `*_par.txt` in `dir`.
+    pub calibration: Option<PathBuf>,
+    /// Which views.
+    pub views: ViewSelection,
+    /// Where the masks come from.
+    pub masks: MaskSource,
+    /// Load the RGB images even when the masks come from a directory (for colour).
+    pub load_images: bool,
+}
+
+/// One loaded view.
+#[derive(Debug, Clone)]
+pub struct DatasetView {
+    /// Image name from the calibration.
+    pub name: String,
+    /// The camera, with the image size filled in.
+    pub camera: CameraModel,
+    /// The silhouette.
+    pub mask: Mask,
+    /// The image, when it was loaded.
+    pub image: Option<RgbImage>,
+}
+
+/// A loaded calibrated image set.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    /// The views, in selection order.
+    pub views: Vec<DatasetView>,
+}
+
+impl Dataset {
+    /// Borrow the views for carving.
+    pub fn carving_views(&self) -> Vec<View<'_>> {
+        self.views.iter().map(|v| View { camera: v.camera, mask: &v.mask }).collect()
+    }
+
+    /// Fails when no camera sees any part of `bbox` (every corner behind the camera or the projected
+    /// box missing the image).
+    pub fn check_box_seen(&self, bbox: &Aabb) -> Result<(), DatasetError> {
+        let seen = self.views.iter().any(|v| {
+            let c = &v.camera;
+            let pts: Vec<_> = bbox.corners().iter().filter_map(|p| c.project(p)).collect();
+            if pts.is_empty() {
+                return false; // the whole box is behind the camera
+            }
+            if pts.len() < 8 {
+                return true; // the box straddles the camera plane: assume the camera sees part of it
+            }
+            let x0 = pts.iter().map(|q| q.x).fold(f64::INFINITY, f64::min);
+            let x1 = pts.iter().map(|q| q.x).fold(f64::NEG_INFINITY, f64::max);
+            let y0 = pts.iter().map(|q| q.y).fold(f64::INFINITY, f64::min);
+            let y1 = pts.iter().map(|q| q.y).fold(f64::NEG_INFINITY, f64::max);
+            x1 >= 0.0 && y1 >= 0.0 && x0 < c.width as f64 && y0 < c.height as f64
+        });
+        if seen {
+            Ok(())
+        } else {
+            Err(DatasetError::BoxUnseen { min: bbox.min, max: bbox.max })
+        }
+    }
+}
+
+fn find_par(dir: &Path) -> Result<PathBuf, DatasetError> {
+    let rd = std::fs::read_dir(dir).map_err(|source| DatasetError::Read { path: dir.to_path_buf(), source })?;
+    let mut found: Vec<PathBuf> = rd
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.ends_with("_par.txt")))
+        .collect();
+    found.sort();
+    found.into_iter().next().ok_or_else(|| DatasetError::NoCalibration { dir: dir.to_path_buf() })
+}
+
+fn load_rgb(path: &Path) -> Result<RgbImage, DatasetError> {
+    Ok(image::open(path).map_err(|source| DatasetError::Image { path: path.to_path_buf(), source })?.to_rgb8())
+}
+
+/// Load a mask PNG (any non-zero luma is object).
+pub fn load_mask(path: &Path) -> Result<Mask, DatasetError> {
+    let img = image::open(path).map_err(|source| DatasetError::Image { path: path.to_path_buf(), source })?.to_luma8();
+    let (w, h) = img.dimensions();
+    Ok(Mask::from_fn(w, h, |u, v| img.get_pixel(u, v).0[0] != 0))
+}
+
+/// Load a data set (see the module docs). Masks are extracted in parallel.
+pub fn load(opts: &DatasetOptions) -> Result<Dataset, DatasetError> {
+    use rayon::prelude::*;
+    let cal_path = match &opts.calibration {
+        Some(p) => p.clone(),
+        None => find_par(&opts.dir)?,
+    };
+    let cals = opts.views.apply(read_calibration(&cal_path)?)?;
+    if cals.is_empty() {
+        return Err(DatasetError::NoViews { path: cal_path });
+    }
+    let views = cals
+        .par_iter()
+        .map(|cal| {
+            let image_path = opts.dir.join(&cal.name);
+            let need_image = opts.load_images || matches!(opts.masks, MaskSource::Extract(_));
+            let image = if need_image {
+                if !image_path.is_file() {
+                    return Err(DatasetError::MissingImage {
+                        calibration: cal_path.clone(),
+                        line: cal.line,
+                        path: image_path,
+                    });
+                }
+                Some(load_rgb(&image_path)?)
+            } else {
+                None
+            };
+            let mask = match &opts.masks {
+                MaskSource::Extract(params) => match &image {
+                    Some(img) => extract_silhouette(img, params),
+                    None => unreachable_mask(),
+                },
+                MaskSource::Directory(dir) => {
+                    let stem = Path::new(&cal.name).file_stem().map(|s| s.to_os_string()).unwrap_or_default();
+                    let mut file = stem;
+                    file.push(".png");
+                    let path = dir.join(file);
+                    let mask = load_mask(&path)?;
+                    if let Some(img) = &image {
+                        if img.dimensions() != (mask.width(), mask.height()) {
+                            return Err(DatasetError::ImageSize {
+                                path,
+                                width: mask.width(),
+                                height: mask.height(),
+                                expected_width: img.width(),
+                                expected_height: img.height(),
+                            });
+                        }
+                    }
+                    mask
+                }
+            };
+            Ok(DatasetView { name: cal.name.clone(), camera: cal.camera(mask.width(), mask.height()), mask, image })
+        })
+        .collect::<Result<Vec<_>, DatasetError>>()?;
+    Ok(Dataset { views })
+}
+
+/// Never reached: images are always loaded when masks are extracted.
+fn unreachable_mask() -> Mask {
+    Mask::from_fn(0, 0, |_, _| false)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rq_decomposition_recovers_k_r_t() {
+        let cam = CameraModel {
+            width: 640,
+            height: 480,
+            intrinsics: Intrinsics { fx: 900.0, fy: 880.0, cx: 300.0, cy: 250.0, skew: 1.5, k1: 0.0, k2: 0.0 },
+            pose: Pose::look_at(Vector3::new(0.3, -0.4, 0.2), Vector3::new(0.0, 0.0, 0.05), Vector3::z()),
+        };
+        for scale in [1.0, -2.5, 0.01] {
+            let p = cam.projection_matrix() * scale;
+            let (k, pose) = decompose_projection(&p).expect("decomposes");
+            assert!((k.fx - 900.0).abs() < 1e-6 && (k.fy - 880.0).abs() < 1e-6 && (k.skew - 1.5).abs() < 1e-6);
+            assert!((k.cx - 300.0).abs() < 1e-6 && (k.cy - 250.0).abs() < 1e-6);
+            assert!((pose.rotation - cam.pose.rotation).norm() < 1e-9);
+            assert!((pose.translation - cam.pose.translation).norm() < 1e-9);
+        }
+        assert!(decompose_projection(&nalgebra::Matrix3x4::zeros()).is_none());
+    }
+
+    #[test]
+    fn par_errors_name_the_line() {
+        let p = Path::new("x_par.txt");
+        let ok = "1\nimg.png 1 0 2 0 1 3 0 0 1 1 0 0 0 1 0 0 0 1 0.1 0.2 0.3\n";
+        let c = parse_par(ok, p).expect("parses");
+        assert_eq!(c[0].intrinsics.cx, 2.0);
+        assert_eq!(c[0].pose.translation.z, 0.3);
+        let e = parse_par("2\nimg.png 1 0 2 0 1 3 0 0 1 1 0 0 0 1 0 0 0 1 0.1 0.2 0.3\n", p).expect_err("count");
+        assert!(matches!(e, DatasetError::ViewCount { declared: 2, found: 1, .. }));
+        let e = parse_par("1\nimg.png 1 0 2\n", p).expect_err("values");
+        assert_eq!(e.to_string(), "x_par.txt:2: expected 22 values, found 4");
+        let e = parse_par("1\nimg.png 1 0 2 0 1 3 0 0 1 1 0 0 0 1 0 0 0 1 0.1 NaN 0.3\n", p).expect_err("nan");
+        assert!(matches!(e, DatasetError::NonFinite { line: 2, .. }));
+        let e = parse_par("1\nimg.png 1 0 2 0 1 3 0 0 1 1 0 0 0 1 0 0 0 1 0.1 x 0.3\n", p).expect_err("nan");
+        assert!(e.to_string().starts_with("x_par.txt:2:"));
+        let e = parse_projections("# c\n\na 1 2 3\n", Path::new("p.txt")).expect_err("values");
+        assert!(e.to_string().starts_with("p.txt:3:"));
+    }
+
+    #[test]
+    fn view_selection_by_list() {
+        let p = Path::new("x_par.txt");
+        let text = "2\na.png 1 0 2 0 1 3 0 0 1 1 0 0 0 1 0 0 0 1 0 0 1\nb.png 1 0 2 0 1 3 0 0 1 1 0 0 0 1 0 0 0 1 0 0 1\n";
+        let all = parse_par(text, p).expect("parses");
+        let sel = ViewSelection::parse("b.png, a").apply(all.clone()).expect("selects");
+        assert_eq!(sel.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(), ["b.png", "a.png"]);
+        assert!(ViewSelection::parse("c.png").apply(all).is_err());
+    }
+}
