@@ -277,3 +277,6 @@ pub fn capture_fresh(
         }
     }
 }
+
+#[cfg(test)]
+mod tests;

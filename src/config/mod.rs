@@ -270,8 +270,11 @@ impl RigConfig {
         if s.dilate_px > 64 || s.erode_px > 64 {
             bad("reconstruction.silhouette.dilate_px", "disc radii above 64 pixels are not supported".into());
         }
-        if r.mesh.smooth_radius > 8 {
-            bad("reconstruction.mesh.smooth_radius", "must be at most 8 voxels".into());
+        if r.mesh.smooth_radius > crate::pipeline::MeshParams::MAX_SMOOTH_RADIUS {
+            bad(
+                "reconstruction.mesh.smooth_radius",
+                format!("must be at most {} voxels", crate::pipeline::MeshParams::MAX_SMOOTH_RADIUS),
+            );
         }
         out
     }

@@ -13,10 +13,7 @@ use crate::acquisition::{self, AcquisitionError, CancelToken, CapturedView, Prog
 use crate::config::RigConfig;
 use crate::devices::{build_rig, DeviceError};
 use crate::geometry::{CameraModel, VoxelGrid};
-use crate::pipeline::export::ExportError;
-use crate::pipeline::occupancy::Occupancy;
-use crate::pipeline::silhouette::{extract_silhouette, Mask, SilhouetteParams};
-use crate::pipeline::space_carving::SpaceCarver;
+use crate::pipeline::{extract_silhouette, CarveError, ExportError, Mask, MeshError, Occupancy, SilhouetteParams, SpaceCarver};
 
 pub use output::OutputDir;
 pub use report::{GroundTruth, Report, Timings};
@@ -45,6 +42,24 @@ pub enum ScanError {
     /// A result file could not be written.
     #[error("cannot write results")]
     Export(#[source] ExportError),
+    /// A frame could not be encoded as PNG.
+    #[error("cannot encode frame {path}")]
+    EncodeFrame {
+        /// The frame file.
+        path: PathBuf,
+        /// The encoder's error.
+        #[source]
+        source: image::ImageError,
+    },
+    /// The report could not be serialised.
+    #[error("cannot serialise report.json")]
+    EncodeReport(#[source] serde_json::Error),
+    /// Carving failed (an unusable grid or a view whose mask does not fit its camera).
+    #[error("space carving failed")]
+    Carve(#[source] CarveError),
+    /// Surface extraction failed.
+    #[error("surface extraction failed")]
+    Mesh(#[source] MeshError),
     /// The acquisition thread died.
     #[error("the acquisition thread panicked")]
     AcquisitionPanicked,
@@ -72,8 +87,8 @@ pub fn silhouette_params(config: &RigConfig) -> SilhouetteParams {
     SilhouetteParams {
         threshold: s.threshold as f32,
         background: s.background,
-        dilate_px: s.dilate_px,
-        erode_px: s.erode_px,
+        dilate: s.dilate_px,
+        erode: s.erode_px,
     }
 }
 
@@ -92,7 +107,7 @@ pub fn run_scan(
     let recon = &config.reconstruction;
     let grid = VoxelGrid::from_resolution(&recon.bbox(), recon.resolution);
     let params = silhouette_params(config);
-    let mut carver = SpaceCarver::new(grid);
+    let mut carver = SpaceCarver::new(grid).map_err(ScanError::Carve)?;
     let mut timings = Timings::default();
     let mut views: Vec<(CameraModel, Mask)> = Vec::with_capacity(config.scan.positions as usize);
 
@@ -130,9 +145,15 @@ pub fn run_scan(
         timings.silhouette += t.elapsed().as_secs_f64();
         let cam = camera.for_turntable_angle(view.angle_deg);
         let t = Instant::now();
-        carver.add_view(&cam, &mask);
+        let stats = match carver.add_view(&cam, &mask) {
+            Ok(stats) => stats,
+            Err(e) => {
+                pipeline_error = Some(ScanError::Carve(e));
+                break;
+            }
+        };
         timings.carve += t.elapsed().as_secs_f64();
-        events(ScanEvent::ViewProcessed { position: view.position, occupied: carver.occupancy().count() });
+        events(ScanEvent::ViewProcessed { position: view.position, occupied: stats.occupied });
         views.push((cam, mask));
     }
     // Dropping the receiver makes a still-running acquisition stop with PipelineGone.
@@ -148,9 +169,10 @@ pub fn run_scan(
     timings.capture = capture_s;
 
     let truth = sim.as_ref().map(|world| {
-        events(ScanEvent::Stage("evaluate"));
+        events(ScanEvent::Stage("ground truth"));
         let scene = world.scene();
-        (config.sim.as_ref().map_or_else(String::new, |s| s.scene.clone()), Occupancy::from_fn(grid, |p| scene.contains(&p)))
+        let name = config.sim.as_ref().map_or_else(String::new, |s| s.scene.clone());
+        (name, Occupancy::from_fn(grid, |p| scene.contains(&p)))
     });
     let report = out.write_results(output::Results {
         source: config.rig.name.clone(),

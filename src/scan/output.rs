@@ -18,11 +18,8 @@ use super::report::{GroundTruth, Report, Timings};
 use super::{ScanError, ScanEvent};
 use crate::acquisition::{AcquisitionSummary, CapturedView};
 use crate::geometry::CameraModel;
-use crate::pipeline::evaluate::{iou_and_containment, reprojection_iou};
-use crate::pipeline::export::{self, write_atomic, ExportError};
-use crate::pipeline::mesh::marching_cubes;
-use crate::pipeline::occupancy::Occupancy;
-use crate::pipeline::silhouette::Mask;
+use crate::pipeline::export::{self, write_atomic};
+use crate::pipeline::{extract_surface, reprojection_iou, Mask, MeshParams, Occupancy, View};
 
 /// A prepared output directory.
 #[derive(Debug)]
@@ -106,7 +103,7 @@ impl OutputDir {
         view.frame
             .image
             .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-            .map_err(|e| ScanError::Export(ExportError::Encode { path: file.clone(), detail: e.to_string() }))?;
+            .map_err(|source| ScanError::EncodeFrame { path: file.clone(), source })?;
         write_atomic(&file, &png).map_err(ScanError::Export)
     }
 
@@ -116,7 +113,7 @@ impl OutputDir {
             r;
         events(ScanEvent::Stage("mesh"));
         let t = Instant::now();
-        let mesh = marching_cubes(occupancy, smooth_radius);
+        let mesh = extract_surface(occupancy, &MeshParams { smooth_radius }).map_err(ScanError::Mesh)?;
         timings.mesh = t.elapsed().as_secs_f64();
 
         events(ScanEvent::Stage("export"));
@@ -125,21 +122,25 @@ impl OutputDir {
         export::write_ply_mesh(&p("model.ply"), &mesh).map_err(ScanError::Export)?;
         export::write_stl(&p("model.stl"), &mesh).map_err(ScanError::Export)?;
         export::write_obj(&p("model.obj"), &mesh).map_err(ScanError::Export)?;
-        let centres: Vec<[f32; 3]> = occupancy.occupied_centres().collect();
+        let centres = export::voxel_centres(occupancy);
         export::write_ply_points(&p("voxels.ply"), &centres, None).map_err(ScanError::Export)?;
         timings.export = t.elapsed().as_secs_f64();
 
         events(ScanEvent::Stage("evaluate"));
-        let reprojection: Vec<f64> = views.iter().map(|(cam, mask)| reprojection_iou(occupancy, cam, mask)).collect();
+        let carving_views: Vec<View<'_>> = views.iter().map(|(camera, mask)| View { camera: *camera, mask }).collect();
+        // A view whose mask does not fit its camera cannot reach here (carving rejected it).
+        let reprojection: Vec<f64> =
+            reprojection_iou(occupancy, &carving_views).into_iter().map(|v| v.unwrap_or(0.0)).collect();
         let mean = if reprojection.is_empty() { 0.0 } else { reprojection.iter().sum::<f64>() / reprojection.len() as f64 };
         let grid = occupancy.grid();
         let voxel_volume = grid.voxel_size.powi(3);
         let ground_truth = truth.map(|(scene, truth)| {
-            let (iou, containment) = iou_and_containment(occupancy, truth);
+            // Same grid by construction.
+            let overlap = occupancy.iou_and_containment(truth).map_or((0.0, 0.0), |o| (o.iou, o.containment));
             GroundTruth {
                 scene: scene.to_owned(),
-                iou,
-                containment,
+                iou: overlap.0,
+                containment: overlap.1,
                 voxels: truth.count(),
                 volume_m3: truth.count() as f64 * voxel_volume,
             }
@@ -169,9 +170,7 @@ impl OutputDir {
             ground_truth,
             files,
         };
-        let json = serde_json::to_vec_pretty(&report).map_err(|e| {
-            ScanError::Export(ExportError::Encode { path: p("report.json"), detail: e.to_string() })
-        })?;
+        let json = serde_json::to_vec_pretty(&report).map_err(ScanError::EncodeReport)?;
         write_atomic(&p("report.json"), &json).map_err(ScanError::Export)?;
         Ok(report)
     }
