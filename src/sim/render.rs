@@ -21,7 +21,7 @@ use image::RgbImage;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use super::rng::gaussian;
+use super::rng::gaussian3;
 use super::scene::Scene;
 use super::world::WorldState;
 use crate::devices::Pattern;
@@ -211,12 +211,13 @@ impl Renderer {
         buf.par_chunks_mut(row_len.max(1)).enumerate().for_each(|(v, row)| {
             for u in 0..w {
                 let c = self.shade(&f, rays, u, v as u32);
-                let base = (v as u64 * w as u64 + u as u64) * 3;
+                let g = if sigma > 0.0 {
+                    gaussian3(noise.seed, noise.sequence, v as u64 * w as u64 + u as u64)
+                } else {
+                    [0.0; 3]
+                };
                 for ch in 0..3 {
-                    let mut x = c[ch] * 255.0;
-                    if sigma > 0.0 {
-                        x += sigma * gaussian(noise.seed, noise.sequence, base + ch as u64);
-                    }
+                    let x = c[ch] * 255.0 + sigma * g[ch];
                     row[3 * u as usize + ch] = x.round().clamp(0.0, 255.0) as u8;
                 }
             }
