@@ -185,7 +185,13 @@ impl Renderer {
             .map(|(l, _)| (to_obj * l.origin_m, to_obj * l.normal, l.colour.map(|c| c as f32 / 255.0)))
             .collect();
         let projector = match (&self.lighting.projector, &state.pattern) {
-            (Some(p), Some(pattern)) if pattern.width == p.model.width && pattern.height == p.model.height => {
+            // A pattern of the wrong size (possible in a hand-made state) is not shown rather than
+            // indexed out of bounds.
+            (Some(p), Some(pattern))
+                if pattern.width == p.model.width
+                    && pattern.height == p.model.height
+                    && pattern.rgb.len() == 3 * pattern.width as usize * pattern.height as usize =>
+            {
                 let m = p.model.for_turntable_angle(state.turntable_deg);
                 Some((m, m.centre(), p.intensity, pattern))
             }

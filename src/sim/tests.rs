@@ -309,6 +309,27 @@ fn laser_line_pixels_lie_on_the_laser_plane() {
 }
 
 #[test]
+fn sim_world_is_clone_debug_send_sync_and_shares_state() {
+    fn assert_traits<T: Clone + std::fmt::Debug + Send + Sync>() {}
+    assert_traits::<SimWorld>();
+    let a = small_world("cup");
+    let b = a.clone();
+    a.set_turntable_angle(33.0);
+    assert_eq!(b.snapshot().turntable_deg, 33.0);
+}
+
+#[test]
+fn a_malformed_pattern_in_a_hand_made_state_is_ignored_not_a_panic() {
+    let rig = small_rig("box");
+    let world = SimWorld::from_config(rig.sim.as_ref().expect("sim"), &rig).expect("world");
+    let rays = RayTable::new(rig.camera.model());
+    let mut state = world.snapshot();
+    let plain = world.renderer().render_rgb(&rays, &state, FrameNoise::NONE);
+    state.pattern = Some(Pattern { width: 800, height: 600, rgb: std::sync::Arc::new(vec![255; 12]) });
+    assert_eq!(world.renderer().render_rgb(&rays, &state, FrameNoise::NONE), plain);
+}
+
+#[test]
 fn world_changes_are_counted_and_bad_requests_refused() {
     let world = small_world("sphere");
     let c0 = world.change_count();
