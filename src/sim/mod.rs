@@ -27,7 +27,7 @@ pub const SCENE_NAMES: &[&str] = &["sphere", "box", "cup", "pit-block", "texture
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SimError {
     /// No preset has this name.
-    #[error("unknown scene `{name}`; known: sphere, box, cup, pit-block, textured-box")]
+    #[error("unknown scene `{name}`; known: {}", SCENE_NAMES.join(", "))]
     UnknownScene {
         /// The name asked for.
         name: String,

@@ -21,7 +21,7 @@ use image::RgbImage;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use super::rng::gaussian;
+use super::rng::gaussian3;
 use super::scene::Scene;
 use super::world::WorldState;
 use crate::devices::Pattern;
@@ -185,7 +185,13 @@ impl Renderer {
             .map(|(l, _)| (to_obj * l.origin_m, to_obj * l.normal, l.colour.map(|c| c as f32 / 255.0)))
             .collect();
         let projector = match (&self.lighting.projector, &state.pattern) {
-            (Some(p), Some(pattern)) if pattern.width == p.model.width && pattern.height == p.model.height => {
+            // A pattern of the wrong size (possible in a hand-made state) is not shown rather than
+            // indexed out of bounds.
+            (Some(p), Some(pattern))
+                if pattern.width == p.model.width
+                    && pattern.height == p.model.height
+                    && pattern.rgb.len() == 3 * pattern.width as usize * pattern.height as usize =>
+            {
                 let m = p.model.for_turntable_angle(state.turntable_deg);
                 Some((m, m.centre(), p.intensity, pattern))
             }
@@ -211,12 +217,13 @@ impl Renderer {
         buf.par_chunks_mut(row_len.max(1)).enumerate().for_each(|(v, row)| {
             for u in 0..w {
                 let c = self.shade(&f, rays, u, v as u32);
-                let base = (v as u64 * w as u64 + u as u64) * 3;
+                let g = if sigma > 0.0 {
+                    gaussian3(noise.seed, noise.sequence, v as u64 * w as u64 + u as u64)
+                } else {
+                    [0.0; 3]
+                };
                 for ch in 0..3 {
-                    let mut x = c[ch] * 255.0;
-                    if sigma > 0.0 {
-                        x += sigma * gaussian(noise.seed, noise.sequence, base + ch as u64);
-                    }
+                    let x = c[ch] * 255.0 + sigma * g[ch];
                     row[3 * u as usize + ch] = x.round().clamp(0.0, 255.0) as u8;
                 }
             }

@@ -106,6 +106,12 @@ fn every_object_point_stands_out_in_every_view_of_every_shipped_rig() {
                 assert!(near, "{}: {p} at {angle}° projects onto background at ({u},{v})", path.display());
             }
         }
+        println!(
+            "{}: dimmest object pixel {:.1} levels, threshold {:.1}",
+            path.display(),
+            dimmest * 255.0,
+            sil.threshold * 255.0
+        );
         // Margin above the threshold for noise: at least 10 levels at 8 bits.
         assert!(dimmest - sil.threshold as f32 > 10.0 / 255.0, "{}: dimmest {dimmest}", path.display());
     }
@@ -303,6 +309,27 @@ fn laser_line_pixels_lie_on_the_laser_plane() {
 }
 
 #[test]
+fn sim_world_is_clone_debug_send_sync_and_shares_state() {
+    fn assert_traits<T: Clone + std::fmt::Debug + Send + Sync>() {}
+    assert_traits::<SimWorld>();
+    let a = small_world("cup");
+    let b = a.clone();
+    a.set_turntable_angle(33.0);
+    assert_eq!(b.snapshot().turntable_deg, 33.0);
+}
+
+#[test]
+fn a_malformed_pattern_in_a_hand_made_state_is_ignored_not_a_panic() {
+    let rig = small_rig("box");
+    let world = SimWorld::from_config(rig.sim.as_ref().expect("sim"), &rig).expect("world");
+    let rays = RayTable::new(rig.camera.model());
+    let mut state = world.snapshot();
+    let plain = world.renderer().render_rgb(&rays, &state, FrameNoise::NONE);
+    state.pattern = Some(Pattern { width: 800, height: 600, rgb: std::sync::Arc::new(vec![255; 12]) });
+    assert_eq!(world.renderer().render_rgb(&rays, &state, FrameNoise::NONE), plain);
+}
+
+#[test]
 fn world_changes_are_counted_and_bad_requests_refused() {
     let world = small_world("sphere");
     let c0 = world.change_count();
@@ -316,6 +343,105 @@ fn world_changes_are_counted_and_bad_requests_refused() {
     let bad = Pattern { width: 800, height: 600, rgb: std::sync::Arc::new(vec![0; 10]) };
     assert!(matches!(world.set_pattern(Some(bad)), Err(SimError::PatternSize { .. })));
     assert_eq!(world.change_count(), c0 + 1, "refused requests change nothing");
+}
+
+/// Binary silhouette of an image by the rig's recipe: max per-channel difference from the background
+/// above the threshold, then a closing (dilate, erode) with discs `x² + y² <= r²`.
+fn silhouette(img: &image::RgbImage, sil: &config::SilhouetteConfig) -> Vec<bool> {
+    let (w, h) = (img.width() as i64, img.height() as i64);
+    let mask: Vec<bool> = img
+        .pixels()
+        .map(|p| {
+            (0..3).map(|i| (p.0[i] as i32 - sil.background[i] as i32).abs()).max().unwrap_or(0) as f64 / 255.0
+                > sil.threshold
+        })
+        .collect();
+    let morph = |m: &[bool], r: u32, dilate: bool| -> Vec<bool> {
+        let r = r as i64;
+        let disc: Vec<(i64, i64)> =
+            (-r..=r).flat_map(|y| (-r..=r).map(move |x| (x, y))).filter(|(x, y)| x * x + y * y <= r * r).collect();
+        (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                let hit = |&(dx, dy): &(i64, i64)| {
+                    let (u, v) = (x + dx, y + dy);
+                    let inside = u >= 0 && v >= 0 && u < w && v < h && m[(v * w + u) as usize];
+                    inside == dilate
+                };
+                if dilate {
+                    disc.iter().any(hit)
+                } else {
+                    !disc.iter().any(hit)
+                }
+            })
+            .collect()
+    };
+    let closed = morph(&mask, sil.dilate_px, true);
+    morph(&closed, sil.erode_px, false)
+}
+
+/// Carves each shipped rig's working volume at its configured resolution from the 24 noisy views
+/// (lights as the scan plan says) with its configured silhouette recipe, and measures containment:
+/// the share of voxels whose centre is inside the true object that survive. Must be >= 0.995.
+/// Release only (a few seconds): `cargo test --release --lib containment -- --nocapture`.
+#[test]
+#[cfg_attr(debug_assertions, ignore = "heavy: run in release")]
+fn space_carving_containment_of_shipped_rigs() {
+    for (path, rig) in shipped_rigs() {
+        let mut devices = crate::devices::build_rig(&rig).expect("rig");
+        let world = devices.sim.clone().expect("sim world");
+        let t = std::time::Duration::from_secs(5);
+        if let Some(l) = devices.lights.as_mut() {
+            for &i in &rig.scan.lights {
+                l.set_light(i, 1.0, t).expect("light");
+            }
+        }
+        let grid =
+            crate::geometry::VoxelGrid::from_resolution(&rig.reconstruction.bbox(), rig.reconstruction.resolution);
+        let mut keep = vec![true; grid.len()];
+        let model = rig.camera.model();
+        for i in 0..rig.scan.positions {
+            let angle = rig.scan.start_deg + 360.0 * i as f64 / rig.scan.positions as f64;
+            devices.turntable.move_to(angle, t).expect("move");
+            let changed = std::time::Instant::now();
+            let frame = loop {
+                let f = devices.camera.capture(t).expect("frame");
+                if f.exposure_start >= changed {
+                    break f;
+                }
+            };
+            let mask = silhouette(&frame.image, &rig.reconstruction.silhouette);
+            let view = model.for_turntable_angle(devices.turntable.angle());
+            for k in 0..grid.dims[2] {
+                for j in 0..grid.dims[1] {
+                    for i in 0..grid.dims[0] {
+                        let idx = grid.index(i, j, k);
+                        if keep[idx] {
+                            if let Some((u, v)) = view.pixel_of(&grid.centre(i, j, k)) {
+                                keep[idx] = mask[(v * model.width + u) as usize];
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        let (mut inside, mut kept_inside, mut kept) = (0usize, 0usize, 0usize);
+        for k in 0..grid.dims[2] {
+            for j in 0..grid.dims[1] {
+                for i in 0..grid.dims[0] {
+                    let idx = grid.index(i, j, k);
+                    let truth = world.scene().contains(&grid.centre(i, j, k));
+                    inside += usize::from(truth);
+                    kept_inside += usize::from(truth && keep[idx]);
+                    kept += usize::from(keep[idx]);
+                }
+            }
+        }
+        let containment = kept_inside as f64 / inside as f64;
+        let hull_ratio = kept as f64 / inside as f64;
+        println!("{}: containment {containment:.5}, kept/true voxels {hull_ratio:.3}", path.display());
+        assert!(containment >= 0.995, "{}: containment {containment}", path.display());
+    }
 }
 
 /// Prints the render time of the shipped 640x480 camera with all four lights and the laser on;
@@ -340,6 +466,11 @@ fn render_timing_640x480() {
         sum += world.renderer().render_rgb(&rays, &state, noise).as_raw()[0] as u64;
     }
     let four = t.elapsed() / n;
+    let t = std::time::Instant::now();
+    for _ in 0..n {
+        sum += world.renderer().render_rgb(&rays, &state, FrameNoise::NONE).as_raw()[0] as u64;
+    }
+    let quiet = t.elapsed() / n;
     world.set_laser(0, true).expect("laser");
     let state = world.snapshot();
     let t = std::time::Instant::now();
@@ -353,7 +484,7 @@ fn render_timing_640x480() {
     }
     let depth = t.elapsed() / n;
     println!(
-        "640x480 ({} threads): ray table {table:?}; rgb, 4 lights: {four:?}; + laser: {laser:?}; depth: {depth:?} ({sum})",
+        "640x480 ({} threads): ray table {table:?}; rgb, 4 lights: {four:?} (noise-free: {quiet:?}); + laser: {laser:?}; depth: {depth:?} ({sum})",
         rayon::current_num_threads()
     );
 }
