@@ -75,7 +75,10 @@ fn simulated_scans_meet_the_visual_hull_bounds() {
     for convex in ["sphere", "box"] {
         assert!(ious[convex] >= 0.90, "{convex}: IoU {} < 0.90", ious[convex]);
     }
-    assert!(ious["cup"] < ious["sphere"] && ious["cup"] < ious["box"], "the cup's pit should not be recovered: {ious:?}");
+    assert!(
+        ious["cup"] < ious["sphere"] && ious["cup"] < ious["box"],
+        "the cup's pit should not be recovered: {ious:?}"
+    );
     assert!(ious["pit-block"] < ious["box"], "the block's pit should not be recovered: {ious:?}");
 }
 

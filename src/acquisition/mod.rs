@@ -199,7 +199,7 @@ fn turntable_scan_steps(
     let move_timeout = Duration::from_millis(plan.move_timeout_ms);
     let capture_timeout = Duration::from_millis(plan.capture_timeout_ms);
     let mut summary = AcquisitionSummary::default();
-    let mut last_sequence: Option<u64> = None;
+    let mut sequence = SequenceTracker::default();
     let mut lights_set = false;
 
     for position in 0..total {
@@ -237,11 +237,8 @@ fn turntable_scan_steps(
             return Err(AcquisitionError::Cancelled { completed: position, total });
         }
         progress(&Progress { step: position, total, stage: Stage::Capturing });
-        let (frame, stale) = capture_fresh(rig, changed_at, capture_timeout, plan.max_stale_frames, position)?;
-        if let Some(last) = last_sequence {
-            summary.dropped += frame.sequence.saturating_sub(last + 1);
-        }
-        last_sequence = Some(frame.sequence);
+        let (frame, stale) =
+            capture_fresh(rig, changed_at, capture_timeout, plan.max_stale_frames, position, &mut sequence)?;
         summary.stale_discarded += u64::from(stale);
         tracing::debug!(sequence = frame.sequence, angle_deg, stale, "captured");
 
@@ -249,7 +246,26 @@ fn turntable_scan_steps(
         views.send(view).map_err(|_| AcquisitionError::PipelineGone { position })?;
         summary.views += 1;
     }
+    summary.dropped = sequence.dropped;
     Ok(summary)
+}
+
+/// Counts gaps in a camera's frame sequence numbers (frames the driver or the camera dropped).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SequenceTracker {
+    last: Option<u64>,
+    /// Frames missing from the sequence so far.
+    pub dropped: u64,
+}
+
+impl SequenceTracker {
+    /// Account for a received frame's sequence number.
+    pub fn see(&mut self, sequence: u64) {
+        if let Some(last) = self.last {
+            self.dropped += sequence.saturating_sub(last.saturating_add(1));
+        }
+        self.last = Some(sequence);
+    }
 }
 
 /// Capture until a frame exposed at or after `changed_at` arrives, discarding stale ones.
@@ -260,13 +276,16 @@ pub fn capture_fresh(
     timeout: Duration,
     max_stale: u32,
     position: usize,
+    sequence: &mut SequenceTracker,
 ) -> Result<(Frame, u32), AcquisitionError> {
     let mut stale = 0;
     loop {
-        let frame = rig
-            .camera
-            .capture(timeout)
-            .map_err(|source| AcquisitionError::Device { step: "capturing a frame", position, source })?;
+        let frame = rig.camera.capture(timeout).map_err(|source| AcquisitionError::Device {
+            step: "capturing a frame",
+            position,
+            source,
+        })?;
+        sequence.see(frame.sequence);
         if frame.exposure_start >= changed_at {
             return Ok((frame, stale));
         }

@@ -39,14 +39,16 @@ fn every_position_yields_one_fresh_frame_and_the_rig_is_parked() {
     for (i, v) in views.iter().enumerate() {
         assert_eq!(v.position, i);
         assert!((v.angle_deg - 60.0 * i as f64).abs() < 0.2, "position {i} at {}", v.angle_deg);
-        // Every position changes the scene (a move), so the camera's queued frames are stale.
-        assert_eq!(v.stale_discarded, depth - 1, "position {i}");
+        // The stream starts at the first capture, after the first change; from then on every
+        // position changes the scene (a move), so the frames queued before it are stale.
+        let expected = if i == 0 { 0 } else { depth - 1 };
+        assert_eq!(v.stale_discarded, expected, "position {i}");
         assert_eq!(v.lights_on, vec![0, 1, 2, 3]);
     }
     // Fresh frames differ between positions only through the scene, so consecutive sequence numbers
     // are counted, not ignored: no frame was dropped.
     assert_eq!(summary.dropped, 0);
-    assert_eq!(summary.stale_discarded, u64::from(depth - 1) * 6);
+    assert_eq!(summary.stale_discarded, u64::from(depth - 1) * 5);
     assert!(lights_off(&rig), "lights must be off after the scan");
     assert_eq!(stages.last().map(|p| p.stage), Some(Stage::Done));
 }
@@ -76,7 +78,8 @@ fn a_vanished_pipeline_stops_the_scan_and_parks() {
     let mut rig = build_rig(&config).expect("rig");
     let (tx, rx) = mpsc::sync_channel(1);
     drop(rx);
-    let err = run_turntable_scan(&mut rig, &config.scan, &tx, &CancelToken::new(), &mut |_| {}).expect_err("no consumer");
+    let err =
+        run_turntable_scan(&mut rig, &config.scan, &tx, &CancelToken::new(), &mut |_| {}).expect_err("no consumer");
     assert!(matches!(err, AcquisitionError::PipelineGone { position: 0 }), "{err}");
     assert!(lights_off(&rig));
 }
@@ -87,8 +90,19 @@ fn a_camera_that_only_delivers_stale_frames_is_an_error() {
     let mut rig = build_rig(&config).expect("rig");
     // A change "in the future" makes every frame stale.
     let later = Instant::now() + Duration::from_secs(3600);
-    let err = capture_fresh(&mut rig, later, Duration::from_secs(1), 4, 0).expect_err("stale");
+    let mut seq = SequenceTracker::default();
+    let err = capture_fresh(&mut rig, later, Duration::from_secs(1), 4, 0, &mut seq).expect_err("stale");
+    assert_eq!(seq.dropped, 0);
     assert!(matches!(err, AcquisitionError::StaleFrames { position: 0, count: 5 }), "{err}");
+}
+
+#[test]
+fn sequence_gaps_are_counted() {
+    let mut t = SequenceTracker::default();
+    for s in [5, 6, 9, 10, 14] {
+        t.see(s);
+    }
+    assert_eq!(t.dropped, 2 + 3);
 }
 
 #[test]

@@ -92,7 +92,8 @@ impl Reporter {
     fn new(total: u64) -> Self {
         let bar = std::io::stderr().is_terminal().then(|| {
             let bar = indicatif::ProgressBar::new(total);
-            if let Ok(style) = indicatif::ProgressStyle::with_template("{spinner} [{bar:40}] {pos}/{len} {msg} ({eta})") {
+            if let Ok(style) = indicatif::ProgressStyle::with_template("{spinner} [{bar:40}] {pos}/{len} {msg} ({eta})")
+            {
                 bar.set_style(style.progress_chars("=> "));
             }
             bar

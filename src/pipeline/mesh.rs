@@ -140,10 +140,8 @@ pub fn extract_surface(occupancy: &Occupancy, params: &MeshParams) -> Result<Tri
         parts.par_iter().flat_map_iter(|p| p.1.iter().map(|t| t.map(index_of)).collect::<Vec<_>>()).collect();
     let grid = occupancy.grid();
     let s = grid.voxel_size;
-    let vertices = all
-        .iter()
-        .map(|(_, p)| [0, 1, 2].map(|a| (grid.origin[a] + (p[a] as f64 - 0.5) * s) as f32))
-        .collect();
+    let vertices =
+        all.iter().map(|(_, p)| [0, 1, 2].map(|a| (grid.origin[a] + (p[a] as f64 - 0.5) * s) as f32)).collect();
     Ok(TriangleMesh { vertices, triangles, colors: None })
 }
 
@@ -250,8 +248,11 @@ fn march_block(occ: &Occupancy, cb: [usize; 3], r: i64, dims: &[i64; 3]) -> Part
                     match (ins.len(), outs.len()) {
                         (1, 3) => {
                             let i = ins[0];
-                            let (a, b, c) =
-                                (edge(i, outs[0], &mut verts), edge(i, outs[1], &mut verts), edge(i, outs[2], &mut verts));
+                            let (a, b, c) = (
+                                edge(i, outs[0], &mut verts),
+                                edge(i, outs[1], &mut verts),
+                                edge(i, outs[2], &mut verts),
+                            );
                             emit(a, b, c);
                         }
                         (3, 1) => {

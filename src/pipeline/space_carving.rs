@@ -31,8 +31,7 @@ use nalgebra::{Matrix3x4, Vector4};
 use rayon::prelude::*;
 
 use super::occupancy::{
-    block_coords, brick_origin, sub_cube_bits, valid_bits, Block, Occupancy, BLOCK,
-    BLOCK_BRICKS, BRICK,
+    block_coords, brick_origin, sub_cube_bits, valid_bits, Block, Occupancy, BLOCK, BLOCK_BRICKS, BRICK,
 };
 use super::silhouette::Mask;
 use crate::geometry::{CameraModel, VoxelGrid};
@@ -59,7 +58,9 @@ pub enum CarveError {
         voxel_size: f64,
     },
     /// A view's mask is not the camera's image size.
-    #[error("view {view}: mask is {mask_width}x{mask_height} px but the camera image is {camera_width}x{camera_height} px")]
+    #[error(
+        "view {view}: mask is {mask_width}x{mask_height} px but the camera image is {camera_width}x{camera_height} px"
+    )]
     MaskSize {
         /// Index of the view in the call.
         view: usize,
@@ -132,9 +133,8 @@ impl Projector {
         let a = [a0.x as f32, a0.y as f32, a0.z as f32];
         let d = [0, 1, 2].map(|axis| [0, 1, 2].map(|c| (m[(c, axis)] * s) as f32));
         let nmax = grid.dims.iter().copied().max().unwrap_or(1) as f64;
-        let scale = [0, 1, 2].map(|c| {
-            (a[c] as f64).abs() + nmax * (0..3).map(|axis| (d[axis][c] as f64).abs()).sum::<f64>() + 1e-30
-        });
+        let scale = [0, 1, 2]
+            .map(|c| (a[c] as f64).abs() + nmax * (0..3).map(|axis| (d[axis][c] as f64).abs()).sum::<f64>() + 1e-30);
         let dist = intr.has_distortion().then(|| Distortion {
             fx: intr.fx as f32,
             fy: intr.fy as f32,
@@ -144,15 +144,7 @@ impl Projector {
             k1: intr.k1 as f32,
             k2: intr.k2 as f32,
         });
-        Projector {
-            a,
-            d,
-            dist,
-            width: camera.width as usize,
-            wf: camera.width as f32,
-            hf: camera.height as f32,
-            scale,
-        }
+        Projector { a, d, dist, width: camera.width as usize, wf: camera.width as f32, hf: camera.height as f32, scale }
     }
 
     /// The pixel voxel `(i, j, k)`'s centre falls in, `None` when behind the camera or outside the image.
@@ -362,7 +354,9 @@ pub fn carve_dense(grid: &VoxelGrid, views: &[View<'_>]) -> Result<Occupancy, Ca
 }
 
 fn check_grid(grid: &VoxelGrid) -> Result<(), CarveError> {
-    if grid.is_empty() || !(grid.voxel_size.is_finite() && grid.voxel_size > 0.0) || grid.origin.iter().any(|o| !o.is_finite())
+    if grid.is_empty()
+        || !(grid.voxel_size.is_finite() && grid.voxel_size > 0.0)
+        || grid.origin.iter().any(|o| !o.is_finite())
     {
         return Err(CarveError::BadGrid { dims: grid.dims, voxel_size: grid.voxel_size });
     }
@@ -520,7 +514,14 @@ fn filter_views(ctx: &PassCtx<'_>, scratch: &mut Scratch, level: usize, lo: [usi
 }
 
 /// A cell above brick level (level 0: 32³, level 1: 16³) starting at voxel `o`.
-fn carve_cell(ctx: &PassCtx<'_>, block: &mut Block, scratch: &mut Scratch, level: usize, o: [usize; 3], bc: [usize; 3]) {
+fn carve_cell(
+    ctx: &PassCtx<'_>,
+    block: &mut Block,
+    scratch: &mut Scratch,
+    level: usize,
+    o: [usize; 3],
+    bc: [usize; 3],
+) {
     let size = BLOCK >> level;
     if (0..3).any(|a| o[a] >= ctx.dims[a]) {
         return;
@@ -529,9 +530,8 @@ fn carve_cell(ctx: &PassCtx<'_>, block: &mut Block, scratch: &mut Scratch, level
     // Local bricks of this cell.
     let nb = size / BRICK;
     let lb0 = [0, 1, 2].map(|a| (o[a] - bc[a] * BLOCK) / BRICK);
-    let local = |x: usize, y: usize, z: usize| {
-        (lb0[0] + x) + BLOCK_BRICKS * ((lb0[1] + y) + BLOCK_BRICKS * (lb0[2] + z))
-    };
+    let local =
+        |x: usize, y: usize, z: usize| (lb0[0] + x) + BLOCK_BRICKS * ((lb0[1] + y) + BLOCK_BRICKS * (lb0[2] + z));
     if nb > 1 {
         let mut any = false;
         for z in 0..nb {

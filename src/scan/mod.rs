@@ -13,7 +13,9 @@ use crate::acquisition::{self, AcquisitionError, CancelToken, CapturedView, Prog
 use crate::config::RigConfig;
 use crate::devices::{build_rig, DeviceError};
 use crate::geometry::{CameraModel, VoxelGrid};
-use crate::pipeline::{extract_silhouette, CarveError, ExportError, Mask, MeshError, Occupancy, SilhouetteParams, SpaceCarver};
+use crate::pipeline::{
+    extract_silhouette, CarveError, ExportError, Mask, MeshError, Occupancy, SilhouetteParams, SpaceCarver,
+};
 
 pub use output::OutputDir;
 pub use report::{GroundTruth, Report, Timings};
@@ -84,12 +86,7 @@ pub enum ScanEvent {
 /// The silhouette parameters of a rig file.
 pub fn silhouette_params(config: &RigConfig) -> SilhouetteParams {
     let s = &config.reconstruction.silhouette;
-    SilhouetteParams {
-        threshold: s.threshold as f32,
-        background: s.background,
-        dilate: s.dilate_px,
-        erode: s.erode_px,
-    }
+    SilhouetteParams { threshold: s.threshold as f32, background: s.background, dilate: s.dilate_px, erode: s.erode_px }
 }
 
 /// Scan the rig described by `config` and write the results into `out`.

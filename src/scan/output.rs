@@ -131,7 +131,8 @@ impl OutputDir {
         // A view whose mask does not fit its camera cannot reach here (carving rejected it).
         let reprojection: Vec<f64> =
             reprojection_iou(occupancy, &carving_views).into_iter().map(|v| v.unwrap_or(0.0)).collect();
-        let mean = if reprojection.is_empty() { 0.0 } else { reprojection.iter().sum::<f64>() / reprojection.len() as f64 };
+        let mean =
+            if reprojection.is_empty() { 0.0 } else { reprojection.iter().sum::<f64>() / reprojection.len() as f64 };
         let grid = occupancy.grid();
         let voxel_volume = grid.voxel_size.powi(3);
         let ground_truth = truth.map(|(scene, truth)| {
