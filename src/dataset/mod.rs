@@ -573,7 +573,8 @@ mod tests {
     #[test]
     fn view_selection_by_list() {
         let p = Path::new("x_par.txt");
-        let text = "2\na.png 1 0 2 0 1 3 0 0 1 1 0 0 0 1 0 0 0 1 0 0 1\nb.png 1 0 2 0 1 3 0 0 1 1 0 0 0 1 0 0 0 1 0 0 1\n";
+        let text =
+            "2\na.png 1 0 2 0 1 3 0 0 1 1 0 0 0 1 0 0 0 1 0 0 1\nb.png 1 0 2 0 1 3 0 0 1 1 0 0 0 1 0 0 0 1 0 0 1\n";
         let all = parse_par(text, p).expect("parses");
         let sel = ViewSelection::parse("b.png, a").apply(all.clone()).expect("selects");
         assert_eq!(sel.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(), ["b.png", "a.png"]);
