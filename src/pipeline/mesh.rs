@@ -103,8 +103,8 @@ const TETS: [[u8; 4]; 6] = {
     out
 };
 
-/// Output of one cell block: (edge key, position) per vertex and key triples per triangle.
-type Part = (Vec<(u64, [f32; 3])>, Vec<[u64; 3]>);
+/// Output of one cell block: unique vertices as (edge key, lattice position), triangles as local indices.
+type Part = (Vec<(u64, [f32; 3])>, Vec<[u32; 3]>);
 
 /// Extract the surface of `occupancy` (see the module docs).
 pub fn extract_surface(occupancy: &Occupancy, params: &MeshParams) -> Result<TriangleMesh, MeshError> {
@@ -128,20 +128,28 @@ pub fn extract_surface(occupancy: &Occupancy, params: &MeshParams) -> Result<Tri
         }
     }
     let parts: Vec<Part> = active.par_iter().map(|cb| march_block(occupancy, *cb, r, &dims)).collect();
-    // Merge vertices shared between blocks by their edge key.
-    let mut all: Vec<(u64, [f32; 3])> = parts.iter().flat_map(|p| p.0.iter().copied()).collect();
-    all.par_sort_unstable_by_key(|v| v.0);
-    all.dedup_by_key(|v| v.0);
-    if all.len() > u32::MAX as usize {
-        return Err(MeshError::TooLarge { vertices: all.len() });
+    // Merge vertices shared between blocks by their edge key (each block's vertices are already unique).
+    let mut keys: Vec<u64> = parts.iter().flat_map(|p| p.0.iter().map(|v| v.0)).collect();
+    keys.par_sort_unstable();
+    keys.dedup();
+    if keys.len() > u32::MAX as usize {
+        return Err(MeshError::TooLarge { vertices: keys.len() });
     }
-    let index_of = |k: u64| all.binary_search_by_key(&k, |v| v.0).map(|i| i as u32).unwrap_or(0);
-    let triangles: Vec<[u32; 3]> =
-        parts.par_iter().flat_map_iter(|p| p.1.iter().map(|t| t.map(index_of)).collect::<Vec<_>>()).collect();
     let grid = occupancy.grid();
     let s = grid.voxel_size;
-    let vertices =
-        all.iter().map(|(_, p)| [0, 1, 2].map(|a| (grid.origin[a] + (p[a] as f64 - 0.5) * s) as f32)).collect();
+    let mut vertices = vec![[0f32; 3]; keys.len()];
+    let mut triangles = Vec::with_capacity(parts.iter().map(|p| p.1.len()).sum());
+    for (verts, tris) in &parts {
+        let global: Vec<u32> = verts
+            .iter()
+            .map(|(k, p)| {
+                let g = keys.binary_search(k).unwrap_or(0);
+                vertices[g] = [0, 1, 2].map(|a| (grid.origin[a] + (p[a] as f64 - 0.5) * s) as f32);
+                g as u32
+            })
+            .collect();
+        triangles.extend(tris.iter().map(|t| t.map(|i| global[i as usize])));
+    }
     Ok(TriangleMesh { vertices, triangles, colors: None })
 }
 
@@ -197,8 +205,10 @@ fn march_block(occ: &Occupancy, cb: [usize; 3], r: i64, dims: &[i64; 3]) -> Part
     let inside = |s: u32| 2 * s as usize > w * w * w;
     let pitch = [1u64, (dims[0] + 2) as u64, ((dims[0] + 2) * (dims[1] + 2)) as u64];
 
-    let mut verts = Vec::new();
-    let mut tris = Vec::new();
+    let mut verts: Vec<(u64, [f32; 3])> = Vec::new();
+    let mut tris: Vec<[u32; 3]> = Vec::new();
+    // Local vertex slot per (lattice point of this block, edge direction): u32::MAX = none yet.
+    let mut slot = vec![u32::MAX; npts[0] * npts[1] * npts[2] * 8];
     for cz in 0..ncells[2] {
         for cy in 0..ncells[1] {
             for cx in 0..ncells[0] {
@@ -213,29 +223,44 @@ fn march_block(occ: &Occupancy, cb: [usize; 3], r: i64, dims: &[i64; 3]) -> Part
                 if mask == 0 || mask == 0xff {
                     continue;
                 }
+                let local = [cx, cy, cz];
                 let cell = [base[0] + cx as i64, base[1] + cy as i64, base[2] + cz as i64];
-                let corner = |n: u8| [0, 1, 2].map(|a| (cell[a] + ((n >> a) & 1) as i64) as f64);
-                let edge = |a: u8, b: u8, verts: &mut Vec<(u64, [f32; 3])>| -> (u64, [f64; 3]) {
+                // Vertex on the cube edge between corners a and b (offset bit masks): (local index, position).
+                let mut edge = |a: u8, b: u8| -> (u32, [f64; 3]) {
                     // Always interpolate from the subset corner (lower) to the superset one.
                     let (lo, hi) = if a & b == a { (a, b) } else { (b, a) };
-                    let pl = corner(lo);
-                    let ph = corner(hi);
+                    let pl = [0, 1, 2].map(|k| (cell[k] + ((lo >> k) & 1) as i64) as f64);
+                    let ph = [0, 1, 2].map(|k| (cell[k] + ((hi >> k) & 1) as i64) as f64);
                     let (fl, fh) = (val[lo as usize] as f32 / total, val[hi as usize] as f32 / total);
                     let t = ((0.5 - fl) / (fh - fl)) as f64;
                     let p = [0, 1, 2].map(|k| pl[k] + t * (ph[k] - pl[k]));
-                    let lin = pl[0] as u64 * pitch[0] + pl[1] as u64 * pitch[1] + pl[2] as u64 * pitch[2];
-                    let key = lin * 8 + (hi & !lo) as u64;
-                    verts.push((key, p.map(|x| x as f32)));
-                    (key, p)
+                    let l = [0, 1, 2].map(|k| local[k] + ((lo >> k) & 1) as usize);
+                    let dir = (hi & !lo) as usize;
+                    let si = (l[0] + npts[0] * (l[1] + npts[1] * l[2])) * 8 + dir;
+                    if slot[si] == u32::MAX {
+                        let lin = pl[0] as u64 * pitch[0] + pl[1] as u64 * pitch[1] + pl[2] as u64 * pitch[2];
+                        slot[si] = verts.len() as u32;
+                        verts.push((lin * 8 + dir as u64, p.map(|x| x as f32)));
+                    }
+                    (slot[si], p)
                 };
                 for tet in &TETS {
-                    let ins: Vec<u8> = tet.iter().copied().filter(|&c| mask >> c & 1 == 1).collect();
-                    let outs: Vec<u8> = tet.iter().copied().filter(|&c| mask >> c & 1 == 0).collect();
-                    let probe = match ins.first() {
-                        Some(&c) if !outs.is_empty() => corner(c),
-                        _ => continue,
-                    };
-                    let mut emit = |a: (u64, [f64; 3]), b: (u64, [f64; 3]), c: (u64, [f64; 3])| {
+                    let (mut ins, mut outs) = ([0u8; 4], [0u8; 4]);
+                    let (mut ni, mut no) = (0, 0);
+                    for &c in tet {
+                        if mask >> c & 1 == 1 {
+                            ins[ni] = c;
+                            ni += 1;
+                        } else {
+                            outs[no] = c;
+                            no += 1;
+                        }
+                    }
+                    if ni == 0 || no == 0 {
+                        continue;
+                    }
+                    let probe = [0, 1, 2].map(|k| (cell[k] + ((ins[0] >> k) & 1) as i64) as f64);
+                    let mut emit = |a: (u32, [f64; 3]), b: (u32, [f64; 3]), c: (u32, [f64; 3])| {
                         let (u, v) = (sub(b.1, a.1), sub(c.1, a.1));
                         let n = [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]];
                         let d = sub(probe, a.1);
@@ -245,33 +270,26 @@ fn march_block(occ: &Occupancy, cb: [usize; 3], r: i64, dims: &[i64; 3]) -> Part
                             tris.push([a.0, b.0, c.0]);
                         }
                     };
-                    match (ins.len(), outs.len()) {
-                        (1, 3) => {
+                    match ni {
+                        1 => {
                             let i = ins[0];
-                            let (a, b, c) = (
-                                edge(i, outs[0], &mut verts),
-                                edge(i, outs[1], &mut verts),
-                                edge(i, outs[2], &mut verts),
-                            );
+                            let (a, b, c) = (edge(i, outs[0]), edge(i, outs[1]), edge(i, outs[2]));
                             emit(a, b, c);
                         }
-                        (3, 1) => {
+                        3 => {
                             let o = outs[0];
-                            let (a, b, c) =
-                                (edge(o, ins[0], &mut verts), edge(o, ins[1], &mut verts), edge(o, ins[2], &mut verts));
+                            let (a, b, c) = (edge(o, ins[0]), edge(o, ins[1]), edge(o, ins[2]));
                             emit(a, b, c);
                         }
-                        (2, 2) => {
-                            let (i0, i1, o0, o1) = (ins[0], ins[1], outs[0], outs[1]);
+                        _ => {
                             // Cyclic order around the quad: i0o0, i0o1, i1o1, i1o0.
-                            let q0 = edge(i0, o0, &mut verts);
-                            let q1 = edge(i0, o1, &mut verts);
-                            let q2 = edge(i1, o1, &mut verts);
-                            let q3 = edge(i1, o0, &mut verts);
+                            let q0 = edge(ins[0], outs[0]);
+                            let q1 = edge(ins[0], outs[1]);
+                            let q2 = edge(ins[1], outs[1]);
+                            let q3 = edge(ins[1], outs[0]);
                             emit(q0, q1, q2);
                             emit(q0, q2, q3);
                         }
-                        _ => {}
                     }
                 }
             }

@@ -194,7 +194,7 @@ mod tests {
         let m = extract_silhouette(&img, &p);
         assert_eq!(m.data(), &[1, 0, 1]);
         let p = SilhouetteParams { background: [60, 0, 0], ..p };
-        assert_eq!(extract_silhouette(&img, &p).data(), &[0, 1, 1]);
+        assert_eq!(extract_silhouette(&img, &p).data(), &[0, 0, 1]);
     }
 
     #[test]

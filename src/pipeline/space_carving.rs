@@ -135,7 +135,7 @@ impl Projector {
         let nmax = grid.dims.iter().copied().max().unwrap_or(1) as f64;
         let scale = [0, 1, 2]
             .map(|c| (a[c] as f64).abs() + nmax * (0..3).map(|axis| (d[axis][c] as f64).abs()).sum::<f64>() + 1e-30);
-        let dist = intr.has_distortion().then(|| Distortion {
+        let dist = intr.has_distortion().then_some(Distortion {
             fx: intr.fx as f32,
             fy: intr.fy as f32,
             cx: intr.cx as f32,
@@ -168,9 +168,10 @@ impl Projector {
                 (p.fx * xd + p.skew * yd + p.cx, p.fy * yd + p.cy)
             }
         };
-        let (fu, fv) = (u.floor(), v.floor());
-        if fu >= 0.0 && fv >= 0.0 && fu < self.wf && fv < self.hf {
-            Some((fu as usize, fv as usize))
+        // floor(u) is in [0, W) exactly when u is in [0, W) (W an integer), and truncation equals
+        // floor for non-negative values: no call to floorf in the hot loop.
+        if u >= 0.0 && v >= 0.0 && u < self.wf && v < self.hf {
+            Some((u as usize, v as usize))
         } else {
             None
         }
@@ -197,8 +198,8 @@ impl Projector {
                 if n & 2 == 0 { lo[1] } else { hi[1] } as f64,
                 if n & 4 == 0 { lo[2] } else { hi[2] } as f64,
             ];
-            for c in 0..3 {
-                p[c] = self.a[c] as f64
+            for (c, pc) in p.iter_mut().enumerate() {
+                *pc = self.a[c] as f64
                     + idx[0] * self.d[0][c] as f64
                     + idx[1] * self.d[1][c] as f64
                     + idx[2] * self.d[2][c] as f64;
@@ -210,7 +211,7 @@ impl Projector {
         if zmax < -zeps {
             return CellBound::Behind;
         }
-        if !(zmin > zeps) {
+        if zmin.partial_cmp(&zeps) != Some(std::cmp::Ordering::Greater) {
             return CellBound::Unknown;
         }
         let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
@@ -304,6 +305,18 @@ fn build_sat(mask: &Mask, sat: &mut Vec<u32>) {
     }
 }
 
+/// `x.floor()` without a libm call, for finite `x` (saturating far outside the `i64` range, which
+/// keeps the comparisons with the image size right).
+#[inline(always)]
+fn floor(x: f64) -> f64 {
+    let t = x as i64 as f64;
+    if t > x {
+        t - 1.0
+    } else {
+        t
+    }
+}
+
 /// Classify a cell for one view against its summed-area table.
 #[inline]
 fn classify(p: &Projector, sat: &[u32], lo: [usize; 3], hi: [usize; 3]) -> Verdict {
@@ -313,7 +326,7 @@ fn classify(p: &Projector, sat: &[u32], lo: [usize; 3], hi: [usize; 3]) -> Verdi
         CellBound::Rect(r) => r,
     };
     let (w, h) = (p.wf as f64, p.hf as f64);
-    let (u0, u1, v0, v1) = (r[0].floor(), r[1].floor(), r[2].floor(), r[3].floor());
+    let (u0, u1, v0, v1) = (floor(r[0]), floor(r[1]), floor(r[2]), floor(r[3]));
     let inside = u0 >= 0.0 && v0 >= 0.0 && u1 < w && v1 < h;
     let (cu0, cu1) = (u0.max(0.0), u1.min(w - 1.0));
     let (cv0, cv1) = (v0.max(0.0), v1.min(h - 1.0));
@@ -645,7 +658,7 @@ pub fn reproject(occupancy: &Occupancy, boundary: &[[u32; 3]], camera: &CameraMo
                 None => ok = false,
             }
         }
-        if !ok || !(x0.is_finite() && x1.is_finite() && y0.is_finite() && y1.is_finite()) {
+        if !(ok && x0.is_finite() && x1.is_finite() && y0.is_finite() && y1.is_finite()) {
             continue;
         }
         // Pixels whose centre (u + 0.5, v + 0.5) is inside [x0, x1] x [y0, y1].
