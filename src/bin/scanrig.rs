@@ -7,7 +7,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 use scanrig::acquisition::{CancelToken, Stage};
-use scanrig::scan::{self, ScanEvent};
+use scanrig::scan::{self, reconstruct, ScanEvent};
 
 #[derive(Parser, Debug)]
 #[command(name = "scanrig", version, about = "Drive a 3D scanner rig and reconstruct what it sees")]
@@ -24,6 +24,42 @@ enum Command {
         #[arg(long)]
         rig: PathBuf,
         /// Output directory (created if missing).
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Reconstruct from a calibrated image set on disk (Middlebury `*_par.txt` or a file of 3x4
+    /// projection matrices) and write the same outputs as `scan`.
+    Reconstruct {
+        /// The data set directory (image names in the calibration are relative to it).
+        #[arg(long)]
+        dataset: PathBuf,
+        /// Reconstruction method.
+        #[arg(long, default_value = "space-carving")]
+        method: String,
+        /// Voxels along the longest side of the box.
+        #[arg(long)]
+        resolution: u32,
+        /// Working volume xmin,ymin,zmin,xmax,ymax,zmax in metres (default: estimated from the views).
+        #[arg(long, allow_hyphen_values = true)]
+        bbox: Option<String>,
+        /// Calibration file (default: the one `*_par.txt` in the data set directory).
+        #[arg(long)]
+        calibration: Option<PathBuf>,
+        /// Views to use: a file with one image name per line, or a comma-separated list.
+        #[arg(long)]
+        views: Option<String>,
+        /// Directory of silhouette masks (same file stems, non-zero = object).
+        #[arg(long, conflicts_with = "silhouette")]
+        masks: Option<PathBuf>,
+        /// Silhouette extraction from the images: threshold=T,dilate=D,erode=E[,background=r:g:b]
+        /// (object where max over R,G,B of |pixel - background| / 255 > T, then a closing with discs
+        /// of D and E pixels). Default: the Middlebury recipe threshold=0.19,dilate=10,erode=7.
+        #[arg(long)]
+        silhouette: Option<String>,
+        /// Occupancy smoothing radius for the mesh, voxels.
+        #[arg(long, default_value_t = 0)]
+        smooth: u32,
+        /// Output directory.
         #[arg(long)]
         out: PathBuf,
     },
@@ -54,6 +90,61 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Validate { rig } => {
             scanrig::config::load(&rig)?;
             println!("{}: ok", rig.display());
+            Ok(())
+        }
+        Command::Reconstruct {
+            dataset,
+            method,
+            resolution,
+            bbox,
+            calibration,
+            views,
+            masks,
+            silhouette,
+            smooth,
+            out,
+        } => {
+            let method = match method.as_str() {
+                "space-carving" => scanrig::config::Method::SpaceCarving,
+                other => anyhow::bail!("--method {other}: unknown method (known: space-carving)"),
+            };
+            if !(2..=4096).contains(&resolution) {
+                anyhow::bail!("--resolution {resolution}: must be between 2 and 4096 voxels");
+            }
+            if smooth > scanrig::pipeline::MeshParams::MAX_SMOOTH_RADIUS {
+                anyhow::bail!("--smooth {smooth}: at most {} voxels", scanrig::pipeline::MeshParams::MAX_SMOOTH_RADIUS);
+            }
+            let bbox = bbox
+                .map(|b| reconstruct::parse_bbox(&b).map_err(|e| anyhow::anyhow!("--bbox {b}: {e}")))
+                .transpose()?;
+            let params = match &silhouette {
+                Some(s) => reconstruct::parse_silhouette(s).map_err(|e| anyhow::anyhow!("--silhouette {s}: {e}"))?,
+                None => scanrig::pipeline::SilhouetteParams::MIDDLEBURY,
+            };
+            let opts = reconstruct::ReconstructOptions {
+                dataset: reconstruct::dataset_options(&dataset, calibration, views.as_deref(), masks, params),
+                method,
+                resolution,
+                bbox,
+                smooth_radius: smooth,
+                out: out.clone(),
+            };
+            let mut reporter = Reporter::new(0);
+            let report = reconstruct::run_reconstruct(&opts, &mut |e| reporter.event(&e))
+                .with_context(|| format!("reconstruction of {} failed", dataset.display()))?;
+            reporter.finish();
+            println!(
+                "{} views, {} voxels occupied ({}x{}x{}), carving {:.4} s, mean re-projection IoU {:.4}, mesh {} triangles",
+                report.views,
+                report.occupied_voxels,
+                report.resolution[0],
+                report.resolution[1],
+                report.resolution[2],
+                report.timings_s.carve,
+                report.reprojection_iou_mean,
+                report.mesh_triangles
+            );
+            println!("results in {}", out.display());
             Ok(())
         }
         Command::Scan { rig, out } => {

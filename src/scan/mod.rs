@@ -3,6 +3,7 @@
 //! pipeline on a calibrated image set on disk. Both write the same outputs (see [`output`]).
 
 pub mod output;
+pub mod reconstruct;
 pub mod report;
 
 use std::path::{Path, PathBuf};
@@ -14,7 +15,7 @@ use crate::config::RigConfig;
 use crate::devices::{build_rig, DeviceError};
 use crate::geometry::{CameraModel, VoxelGrid};
 use crate::pipeline::{
-    extract_silhouette, CarveError, ExportError, Mask, MeshError, Occupancy, SilhouetteParams, SpaceCarver,
+    extract_silhouette, CarveError, ExportError, Mask, MeshError, Occupancy, SilhouetteParams, SpaceCarver, View,
 };
 
 pub use output::OutputDir;
@@ -171,11 +172,12 @@ pub fn run_scan(
         let name = config.sim.as_ref().map_or_else(String::new, |s| s.scene.clone());
         (name, Occupancy::from_fn(grid, |p| scene.contains(&p)))
     });
+    let carving_views: Vec<View<'_>> = views.iter().map(|(camera, mask)| View { camera: *camera, mask }).collect();
     let report = out.write_results(output::Results {
         source: config.rig.name.clone(),
         method: recon.method.name(),
         occupancy: carver.occupancy(),
-        views: &views,
+        views: &carving_views,
         smooth_radius: recon.mesh.smooth_radius,
         truth: truth.as_ref().map(|(name, occ)| (name.as_str(), occ)),
         frames: Some(summary),

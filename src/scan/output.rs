@@ -17,9 +17,8 @@ use std::time::Instant;
 use super::report::{GroundTruth, Report, Timings};
 use super::{ScanError, ScanEvent};
 use crate::acquisition::{AcquisitionSummary, CapturedView};
-use crate::geometry::CameraModel;
 use crate::pipeline::export::{self, write_atomic};
-use crate::pipeline::{extract_surface, reprojection_iou, Mask, MeshParams, Occupancy, View};
+use crate::pipeline::{extract_surface, reprojection_iou, MeshParams, Occupancy, View};
 
 /// A prepared output directory.
 #[derive(Debug)]
@@ -35,8 +34,8 @@ pub struct Results<'a> {
     pub method: &'static str,
     /// The carved occupancy.
     pub occupancy: &'a Occupancy,
-    /// Cameras (object frame) and silhouettes of the views used.
-    pub views: &'a [(CameraModel, Mask)],
+    /// Cameras (in the grid's frame) and silhouettes of the views used.
+    pub views: &'a [View<'a>],
     /// Occupancy smoothing radius for the mesh, voxels.
     pub smooth_radius: u32,
     /// Scene name and true occupancy on the same grid, for simulated rigs.
@@ -127,10 +126,8 @@ impl OutputDir {
         timings.export = t.elapsed().as_secs_f64();
 
         events(ScanEvent::Stage("evaluate"));
-        let carving_views: Vec<View<'_>> = views.iter().map(|(camera, mask)| View { camera: *camera, mask }).collect();
         // A view whose mask does not fit its camera cannot reach here (carving rejected it).
-        let reprojection: Vec<f64> =
-            reprojection_iou(occupancy, &carving_views).into_iter().map(|v| v.unwrap_or(0.0)).collect();
+        let reprojection: Vec<f64> = reprojection_iou(occupancy, views).into_iter().map(|v| v.unwrap_or(0.0)).collect();
         let mean =
             if reprojection.is_empty() { 0.0 } else { reprojection.iter().sum::<f64>() / reprojection.len() as f64 };
         let grid = occupancy.grid();
