@@ -241,3 +241,66 @@ fn reverse_turntable_negates_angles_on_the_wire() {
     assert!((rev.angle() - 90.0).abs() < 0.2);
     b.table.move_to(0.0, MOVE_TIMEOUT).expect("move back");
 }
+
+#[test]
+fn horus_lost_ok_is_a_bounded_typed_timeout() {
+    let mut b = board("horus", "");
+    b.table.move_to(0.0, MOVE_TIMEOUT).expect("connect");
+    faults(&b).drop_replies.store(1, Ordering::SeqCst);
+    let t0 = Instant::now();
+    let err = b.table.move_to(30.0, MOVE_TIMEOUT).expect_err("Horus cannot resend a G1 safely");
+    assert_eq!(err.kind(), ErrorKind::Timeout, "{err}");
+    assert!(t0.elapsed() < Duration::from_secs(2), "took {:?}", t0.elapsed());
+}
+
+#[test]
+fn horus_reset_mid_scan_is_a_disconnect() {
+    let mut b = board("horus", "");
+    faults(&b).reset_at_move.store(2, Ordering::SeqCst);
+    let (captured, result) = scan(&mut b, 4);
+    let err = result.expect_err("reset mid-scan");
+    assert_eq!(err.kind(), ErrorKind::Disconnected, "{err}");
+    assert_eq!(captured.len(), 1);
+}
+
+#[test]
+fn fabscan_unplug_then_replug_reconnects() {
+    let mut b = board("fabscan", "");
+    let f = faults(&b);
+    f.unplug_at_move.store(3, Ordering::SeqCst);
+    let (captured, result) = scan(&mut b, 6);
+    let err = result.expect_err("unplugged");
+    assert_eq!(err.kind(), ErrorKind::Disconnected, "{err}");
+    // Position 0 needs no motion on FabScan (relative moves), so the third move is position 3.
+    assert_eq!(captured.len(), 3);
+    f.replug();
+    let deadline = Instant::now() + Duration::from_secs(5);
+    scanrig::devices::serial::controller::lock(&b.opened.controller).reconnect(deadline).expect("back");
+    b.table.move_to(0.0, MOVE_TIMEOUT).expect("moves after replug");
+}
+
+#[test]
+fn scanrig_board_watchdog_switches_everything_off_when_the_host_goes_silent() {
+    let mut b = board("scanrig", "watchdog_ms = 100");
+    b.lights.set_laser(0, true, T).expect("laser on");
+    // Wait, bounded, for the board's own watchdog to act; the host sends nothing meanwhile.
+    let deadline = Instant::now() + Duration::from_secs(2);
+    let off = |calls: &[HardwareCall]| {
+        let on_at = calls.iter().position(|c| *c == HardwareCall::Laser(0, true));
+        on_at.is_some_and(|i| calls[i..].contains(&HardwareCall::Laser(0, false)))
+    };
+    while !off(&b.hw.calls()) {
+        assert!(Instant::now() < deadline, "the watchdog never switched the laser off: {:?}", b.hw.calls());
+        std::thread::park_timeout(Duration::from_millis(10));
+    }
+    // The host notices nothing wrong with the link and can switch it on again.
+    b.lights.set_laser(0, true, T).expect("laser on again");
+}
+
+#[test]
+fn homing_without_end_stop_is_unsupported() {
+    let mut b = board("scanrig", "");
+    let err = b.table.home(T).expect_err("the emulated board has no end stop");
+    assert_eq!(err.kind(), ErrorKind::Unsupported, "{err}");
+    b.table.move_to(15.0, MOVE_TIMEOUT).expect("the link is fine after a refusal");
+}

@@ -37,7 +37,9 @@ pub fn build_rig(config: &RigConfig) -> Result<Rig, DeviceError> {
             problem: "kind = \"sim\" needs a [sim] section".into(),
         })
     };
-    // The turntable and lights of a serial rig share one controller on one port.
+    // The turntable and lights of a serial rig share one controller on one port. With
+    // `port = "emulator:..."` the emulator drives the hardware given here (None: a recorder); pass
+    // the simulated world once it implements `serial::EmulatedHardware`.
     let serial = match &config.controller {
         Some(c) => Some(super::serial::open_controller(c, None)?),
         None => None,

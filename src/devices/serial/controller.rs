@@ -212,6 +212,13 @@ impl SerialController {
         result
     }
 
+    /// Drive to the end stop and zero there (boards without one refuse).
+    pub fn home(&mut self, timeout: Duration) -> Result<(), LinkError> {
+        let pos = self.with_link(|d, l, _| d.home(l, timeout))?;
+        self.position_steps = pos;
+        Ok(())
+    }
+
     /// Turn to `steps` and wait for the motion to finish.
     pub fn move_to_steps(&mut self, steps: i64, timeout: Duration) -> Result<i64, LinkError> {
         let pos = self.with_link(|d, l, _| d.move_to(l, steps, timeout))?;

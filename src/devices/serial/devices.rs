@@ -71,15 +71,12 @@ impl Turntable for SerialTurntable {
     }
 
     fn home(&mut self, timeout: Duration) -> Result<(), DeviceError> {
-        let mut c = lock(&self.controller);
-        let pos = c.with_link(|d, l, _| d.home(l, timeout)).map_err(|e| e.into_device_error(&self.name))?;
-        drop(c);
-        let _ = pos;
-        Ok(())
+        lock(&self.controller).home(timeout).map_err(|e| e.into_device_error(&self.name))
     }
 }
 
-/// The lights and lasers of a serial board.
+/// The lights and lasers of a serial board. Each switch is one exchange with the board, bounded by
+/// the controller's `reply_timeout_ms` times `retries + 1`; the per-call `timeout` is not used.
 #[derive(Debug)]
 pub struct SerialLightArray {
     controller: SharedController,

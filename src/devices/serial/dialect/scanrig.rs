@@ -5,8 +5,8 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use firmware_protocol::{
-    realtime, BoardDecoder, BoardMessage, Command, DecodeError, ErrorCode, Event, Framing, Millideg, MotionState,
-    OkPayload, SafetyReason, PROTOCOL_VERSION,
+    realtime, BoardDecoder, BoardMessage, Command, DecodeError, Event, Framing, Millideg, MotionState, OkPayload,
+    SafetyReason, PROTOCOL_VERSION,
 };
 
 use super::{BoardInfo, Dialect, Timing};
@@ -297,9 +297,4 @@ impl Dialect for ScanrigDialect {
     fn all_off(&mut self, link: &mut Link, _lights: usize, _lasers: usize) -> Result<(), LinkError> {
         self.exchange(link, Command::Off).map(drop)
     }
-}
-
-/// Whether an error code from the board means the line itself was damaged.
-pub fn is_transmission_error(code: u16) -> bool {
-    ErrorCode::from_code(code).is_transmission()
 }
