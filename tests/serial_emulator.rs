@@ -2,6 +2,8 @@
 //! dialect, and every fault knob of the scanrig emulator. Every wait is bounded by the drivers'
 //! own timeouts; no test sleeps to let things settle.
 
+mod serial_common;
+
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -303,4 +305,17 @@ fn homing_without_end_stop_is_unsupported() {
     let err = b.table.home(T).expect_err("the emulated board has no end stop");
     assert_eq!(err.kind(), ErrorKind::Unsupported, "{err}");
     b.table.move_to(15.0, MOVE_TIMEOUT).expect("the link is fine after a refusal");
+}
+
+#[test]
+fn scanrig_emulator_answers_every_replayable_spec_example_exactly() {
+    let hw: Arc<dyn EmulatedHardware> = Arc::new(RecordingHardware::new());
+    let settings = scanrig::devices::serial::EmulatorSettings { speed_deg_per_s: 3600.0, ..Default::default() };
+    let emu =
+        scanrig::devices::serial::Emulator::spawn(scanrig::devices::serial::EmulatedFirmware::Scanrig, settings, hw)
+            .expect("emulator starts");
+    let port = emu.connect().expect("pty pair");
+    let mut link = scanrig::devices::serial::link::Link::new(Box::new(port));
+    // The emulator names itself differently from the reference firmware in the spec: skip `ID`.
+    serial_common::replay_spec_examples(&mut link, "the scanrig emulator", |line| line == "ID");
 }

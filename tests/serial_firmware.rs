@@ -10,8 +10,12 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
+mod serial_common;
+
 use scanrig::config::ControllerConfig;
-use scanrig::devices::serial::{open_controller, SerialLightArray, SerialTurntable};
+use scanrig::devices::serial::link::Link;
+use scanrig::devices::serial::port::{Opener, SystemOpener};
+use scanrig::devices::serial::{open_controller, PortSpec, SerialLightArray, SerialTurntable};
 use scanrig::devices::{ErrorKind, LightArray, Turntable};
 
 const T: Duration = Duration::from_secs(3);
@@ -81,15 +85,37 @@ fn start(out: &Path) -> Simulator {
     }
 }
 
+/// Whether the tools are there; panics when they are required and absent.
+fn tools_present() -> bool {
+    match missing_tools() {
+        None => true,
+        Some(reason) => {
+            if std::env::var("SCANRIG_REQUIRE_FIRMWARE_SIM").is_ok_and(|v| v == "1") {
+                panic!("firmware simulation test is required here, but {reason}");
+            }
+            eprintln!(
+                "skipping the firmware-in-simavr test: {reason} (apt-get install gcc-avr avr-libc simavr libsimavr-dev)"
+            );
+            false
+        }
+    }
+}
+
+#[test]
+fn reference_firmware_answers_every_replayable_spec_example_exactly() {
+    if !tools_present() {
+        return;
+    }
+    let out = build();
+    let sim = start(&out);
+    let spec = PortSpec::parse(&sim.pty).expect("a pty path");
+    let mut link = Link::new(SystemOpener::new(spec, 115_200).open().expect("the pty opens"));
+    serial_common::replay_spec_examples(&mut link, "the reference firmware", |_| false);
+}
+
 #[test]
 fn serial_driver_runs_a_scan_on_the_reference_firmware_in_simavr() {
-    if let Some(reason) = missing_tools() {
-        if std::env::var("SCANRIG_REQUIRE_FIRMWARE_SIM").is_ok_and(|v| v == "1") {
-            panic!("firmware simulation test is required here, but {reason}");
-        }
-        eprintln!(
-            "skipping the firmware-in-simavr test: {reason} (apt-get install gcc-avr avr-libc simavr libsimavr-dev)"
-        );
+    if !tools_present() {
         return;
     }
     let out = build();

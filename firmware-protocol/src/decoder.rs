@@ -127,13 +127,23 @@ impl BoardDecoder {
     }
 }
 
+/// A command line the board cannot execute, and the line number to answer with: the line's own
+/// number when its checksum (if any) was good, so that `error:<code> N<n>` reaches the right request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Rejected {
+    /// The line's number, when it can be trusted.
+    pub line: Option<u16>,
+    /// Why the line was rejected.
+    pub error: DecodeError,
+}
+
 /// What the board's [`CommandDecoder`] found.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Input {
     /// A real-time byte (see [`realtime`]); act on it at once.
     RealTime(u8),
     /// A complete command line, or why it could not be decoded (answer `error:<code>`).
-    Line(Result<(Framing, Command), DecodeError>),
+    Line(Result<(Framing, Command), Rejected>),
 }
 
 /// Firmware side: decodes the host's lines and picks out real-time bytes wherever they appear.
@@ -160,8 +170,21 @@ impl CommandDecoder {
         }
         match self.lines.push(byte) {
             Split::Pending => None,
-            Split::Overflow => Some(Input::Line(Err(DecodeError::Overflow))),
-            Split::Line(l) => Some(Input::Line(Command::decode(l))),
+            Split::Overflow => Some(Input::Line(Err(Rejected { line: None, error: DecodeError::Overflow }))),
+            Split::Line(l) => Some(Input::Line(Command::decode(l).map_err(|error| Rejected {
+                line: match error {
+                    DecodeError::Unknown | DecodeError::BadArgument => trusted_line_number(l),
+                    _ => None,
+                },
+                error,
+            }))),
         }
     }
+}
+
+/// The `N<n>` of a line whose checksum, if any, is good.
+fn trusted_line_number(line: &[u8]) -> Option<u16> {
+    let (body, _) = crate::framing::strip_checksum(line).ok()?;
+    let first = body.split(|&b| b == b' ').next()?;
+    crate::framing::parse_line_number(first)
 }

@@ -16,7 +16,7 @@ mod number;
 mod text;
 
 pub use command::Command;
-pub use decoder::{BoardDecoder, CommandDecoder, DecodedMessage, Input, LineSplitter, Split};
+pub use decoder::{BoardDecoder, CommandDecoder, DecodedMessage, Input, LineSplitter, Rejected, Split};
 pub use framing::{checksum, EncodeError, Framing};
 pub use message::{BoardMessage, Caps, ErrorCode, Event, Identity, MotionState, OkPayload, SafetyReason};
 pub use number::Millideg;

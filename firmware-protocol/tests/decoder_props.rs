@@ -154,3 +154,23 @@ fn millidegrees_parse_and_print_canonically() {
     assert_eq!(Millideg::from_degrees(12.3456), Some(Millideg(12_346)));
     assert_eq!(Millideg::from_degrees(f64::NAN), None);
 }
+
+#[test]
+fn rejected_lines_keep_a_trustworthy_line_number() {
+    let mut d = CommandDecoder::new();
+    let mut out = Vec::new();
+    for &b in b"N5 LIGHT 0\nN6 FLY*00\nN7 FLY\n" {
+        if let Some(i) = d.push(b) {
+            out.push(i);
+        }
+    }
+    use firmware_protocol::{DecodeError, Rejected};
+    assert_eq!(
+        out,
+        vec![
+            Input::Line(Err(Rejected { line: Some(5), error: DecodeError::BadArgument })),
+            Input::Line(Err(Rejected { line: None, error: DecodeError::Checksum { computed: 0x0B, carried: 0 } })),
+            Input::Line(Err(Rejected { line: Some(7), error: DecodeError::Unknown })),
+        ]
+    );
+}

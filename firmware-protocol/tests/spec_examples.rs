@@ -18,7 +18,7 @@ fn exchanges() -> Vec<(usize, Vec<Step>)> {
     for (i, line) in text.lines().enumerate() {
         let lineno = i + 1;
         match (&mut current, line.trim_end()) {
-            (None, "```exchange") => current = Some((lineno, Vec::new())),
+            (None, l) if l.starts_with("```exchange") => current = Some((lineno, Vec::new())),
             (Some(_), "```") => blocks.push(current.take().expect("inside a block")),
             (Some((_, steps)), l) => {
                 let step = if let Some(rest) = l.strip_prefix("> ") {

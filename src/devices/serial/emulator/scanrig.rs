@@ -4,8 +4,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use firmware_protocol::{
-    realtime, BoardMessage, Caps, Command, CommandDecoder, ErrorCode, Event, Identity, Input, MotionState, OkPayload,
-    SafetyReason, Text, PROTOCOL_VERSION,
+    realtime, BoardMessage, Caps, Command, CommandDecoder, DecodeError, ErrorCode, Event, Identity, Input, MotionState,
+    OkPayload, Rejected, SafetyReason, Text, PROTOCOL_VERSION,
 };
 
 use super::{Action, BoardModel, EmulatedHardware, EmulatorSettings, Faults, Motion, MotionFault, OutKind, Outbox};
@@ -118,13 +118,13 @@ impl ScanrigBoard {
         now: Instant,
         out: &mut Outbox,
         faults: &Faults,
-    ) -> Result<OkPayload, (ErrorCode, &'static str)> {
+    ) -> Result<OkPayload, (ErrorCode, Text)> {
         let start_motion = |b: &mut Self, target: i64, out: &mut Outbox| {
             if b.motion.is_some() {
-                return Err((ErrorCode::Busy, "busy"));
+                return Err((ErrorCode::Busy, Text::from_str("busy")));
             }
             if target.abs() > i64::from(i32::MAX) {
-                return Err((ErrorCode::BadArgument, "target out of range"));
+                return Err((ErrorCode::BadArgument, Text::from_str("bad argument")));
             }
             b.last_move = b.last_move.checked_add(1).unwrap_or(1);
             b.motor_on = true;
@@ -153,17 +153,17 @@ impl ScanrigBoard {
                 let target = base + self.steps_of(a.0);
                 start_motion(self, target, out)
             }
-            Command::Home => Err((ErrorCode::Unsupported, "no end stop")),
+            Command::Home => Err((ErrorCode::Unsupported, Text::from_str("no end stop"))),
             Command::Zero => {
                 if self.motion.is_some() {
-                    return Err((ErrorCode::Busy, "busy"));
+                    return Err((ErrorCode::Busy, Text::from_str("busy")));
                 }
                 self.pos = 0;
                 Ok(OkPayload::Empty)
             }
             Command::Motor(on) => {
                 if !on && self.motion.is_some() {
-                    return Err((ErrorCode::Busy, "busy"));
+                    return Err((ErrorCode::Busy, Text::from_str("busy")));
                 }
                 self.motor_on = on;
                 self.motor_idle_since = now;
@@ -171,14 +171,14 @@ impl ScanrigBoard {
             }
             Command::Light { index, level } => {
                 if index >= self.s.lights {
-                    return Err((ErrorCode::Unsupported, "no such light"));
+                    return Err((ErrorCode::Unsupported, Text::from_str(&format!("no light {index}"))));
                 }
                 self.hw.set_light(usize::from(index), f32::from(level) / 255.0);
                 Ok(OkPayload::Empty)
             }
             Command::Laser { index, on } => {
                 let Some(slot) = self.lasers_on_since.get_mut(usize::from(index)) else {
-                    return Err((ErrorCode::Unsupported, "no such laser"));
+                    return Err((ErrorCode::Unsupported, Text::from_str(&format!("no laser {index}"))));
                 };
                 *slot = on.then_some(now);
                 self.hw.set_laser(usize::from(index), on);
@@ -224,9 +224,16 @@ impl BoardModel for ScanrigBoard {
                 });
                 self.send(out, OutKind::Other, &msg);
             }
-            Input::Line(Err(e)) => {
-                let msg =
-                    BoardMessage::Error { line: None, code: e.error_code(), text: Text::from_str(&e.to_string()) };
+            Input::Line(Err(Rejected { line, error: e })) => {
+                // The same short texts as the reference firmware.
+                let text = match e {
+                    DecodeError::Overflow => "line too long",
+                    DecodeError::NotAscii => "not printable ASCII",
+                    DecodeError::Checksum { .. } => "bad checksum",
+                    DecodeError::Unknown => "unknown command",
+                    DecodeError::BadArgument => "bad argument",
+                };
+                let msg = BoardMessage::Error { line, code: e.error_code(), text: Text::from_str(text) };
                 self.send(out, OutKind::Reply, &msg);
             }
             Input::Line(Ok((framing, cmd))) => {
@@ -249,7 +256,7 @@ impl BoardModel for ScanrigBoard {
                 let line = framing.line;
                 let reply = match self.execute(cmd, now, out, faults) {
                     Ok(payload) => BoardMessage::Ok { line, payload },
-                    Err((code, text)) => BoardMessage::Error { line, code, text: Text::from_str(text) },
+                    Err((code, text)) => BoardMessage::Error { line, code, text },
                 };
                 if let Some(n) = line {
                     self.last_line = Some((n, reply));
