@@ -319,3 +319,15 @@ fn scanrig_emulator_answers_every_replayable_spec_example_exactly() {
     // The emulator names itself differently from the reference firmware in the spec: skip `ID`.
     serial_common::replay_spec_examples(&mut link, "the scanrig emulator", |line| line == "ID");
 }
+
+#[test]
+fn field_dialects_survive_garbage_before_replies() {
+    for dialect in ["horus", "fabscan"] {
+        let mut b = board(dialect, "");
+        faults(&b).garbage_replies.store(4, Ordering::SeqCst);
+        let (captured, result) = scan(&mut b, 4);
+        result.unwrap_or_else(|e| panic!("{dialect}: {e}"));
+        assert_eq!(captured.len(), 4, "{dialect}");
+        assert_eq!(faults(&b).garbage_replies.load(Ordering::SeqCst), 0, "{dialect}: the garbage was sent");
+    }
+}

@@ -226,3 +226,16 @@ impl SerialController {
         Ok(pos)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backoff_doubles_then_caps() {
+        let b = Backoff { initial: Duration::from_millis(100), max: Duration::from_millis(1000) };
+        let delays: Vec<u128> = (1..=7).map(|n| b.delay(n).as_millis()).collect();
+        assert_eq!(delays, vec![100, 200, 400, 800, 1000, 1000, 1000]);
+        assert_eq!(b.delay(u32::MAX), Duration::from_millis(1000));
+    }
+}

@@ -34,7 +34,7 @@ impl HorusDialect {
         let mut lines = Vec::new();
         loop {
             let l = read_text_line(link, deadline, "a reply", timeout, 120)?;
-            let t = l.trim();
+            let t = after_noise(&l);
             if t == "ok" {
                 return Ok(lines);
             } else if let Some(text) = t.strip_prefix("error:") {
@@ -55,7 +55,7 @@ impl HorusDialect {
         let deadline = Instant::now() + timeout;
         loop {
             let l = read_text_line(link, deadline, "a status report", timeout, 160)?;
-            let t = l.trim();
+            let t = after_noise(&l);
             if t.starts_with("Horus") || t.starts_with("Grbl") {
                 return Err(LinkError::BoardReset);
             }
@@ -174,5 +174,28 @@ impl Dialect for HorusDialect {
 
     fn motor(&mut self, link: &mut Link, on: bool) -> Result<(), LinkError> {
         self.command(link, if on { "M17" } else { "M18" }, self.timing.reply_timeout).map(drop)
+    }
+}
+
+/// The part of a line after the last byte that line noise leaves (control or non-ASCII bytes, shown
+/// as U+FFFD after lossy decoding), trimmed: GRBL-style boards cannot resend, so a reply glued to
+/// noise is still read when it can be.
+fn after_noise(line: &str) -> &str {
+    let start = line
+        .rfind(|c: char| c.is_control() || !c.is_ascii())
+        .map_or(0, |i| i + line[i..].chars().next().map_or(1, char::len_utf8));
+    line[start..].trim()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::after_noise;
+
+    #[test]
+    fn noise_before_a_reply_is_cut_off() {
+        assert_eq!(after_noise("ok"), "ok");
+        assert_eq!(after_noise("\u{0}\u{FFFD}#~%\u{7f}ok"), "ok");
+        assert_eq!(after_noise("  <Idle,MPos:1.000,0,0>  "), "<Idle,MPos:1.000,0,0>");
+        assert_eq!(after_noise("\u{7f}"), "");
     }
 }
