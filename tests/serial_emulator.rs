@@ -21,7 +21,7 @@ const T: Duration = Duration::from_secs(2);
 fn controller_config(dialect: &str, extra: &str) -> ControllerConfig {
     let steps = if dialect == "scanrig" { "" } else { "steps_per_turn = 3200" };
     let text = format!(
-        "port = \"emulator:{dialect}\"\ndialect = \"{dialect}\"\n{steps}\nreply_timeout_ms = 150\nboot_ms = 300\n\
+        "port = \"emulator:{dialect}\"\ndialect = \"{dialect}\"\n{steps}\nreply_timeout_ms = 300\nboot_ms = 300\n\
          reconnect_max_ms = 200\n{extra}\n[emulator]\nspeed_deg_per_s = 3600\nboot_ms = 10\n"
     );
     toml::from_str(&text).expect("test controller config parses")
@@ -211,7 +211,7 @@ fn unplug_is_a_state_and_replug_reconnects_with_backoff() {
 #[test]
 fn steps_per_turn_mismatch_is_refused() {
     let cfg: ControllerConfig = toml::from_str(
-        "port = \"emulator:scanrig\"\nsteps_per_turn = 1600\nreply_timeout_ms = 150\nboot_ms = 300\n\
+        "port = \"emulator:scanrig\"\nsteps_per_turn = 1600\nreply_timeout_ms = 300\nboot_ms = 300\n\
          [emulator]\nsteps_per_turn = 3200\nboot_ms = 10\n",
     )
     .expect("parses");
@@ -224,7 +224,7 @@ fn steps_per_turn_mismatch_is_refused() {
 #[test]
 fn horus_step_scaling_mismatch_is_refused() {
     let cfg: ControllerConfig = toml::from_str(
-        "port = \"emulator:horus\"\ndialect = \"horus\"\nsteps_per_turn = 1600\nreply_timeout_ms = 150\nboot_ms = 300\n\
+        "port = \"emulator:horus\"\ndialect = \"horus\"\nsteps_per_turn = 1600\nreply_timeout_ms = 300\nboot_ms = 300\n\
          [emulator]\nsteps_per_turn = 3200\nboot_ms = 10\n",
     )
     .expect("parses");
