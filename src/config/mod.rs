@@ -118,6 +118,89 @@ fn key_span(table: &dyn toml_edit::TableLike, parts: &[&str]) -> Option<std::ops
 }
 
 impl RigConfig {
+    /// Checks of `[controller]` and of the devices that use it.
+    fn validate_controller(&self, bad: &mut dyn FnMut(&str, String)) {
+        let serial_turntable = matches!(self.turntable, TurntableConfig::Serial(_));
+        let serial_lights = self.lights.as_ref().is_some_and(|l| l.kind == LightsKind::Serial);
+        let Some(c) = &self.controller else {
+            if serial_turntable {
+                bad("turntable.kind", "kind = \"serial\" needs a `[controller]` section".into());
+            }
+            if serial_lights {
+                bad("lights.kind", "kind = \"serial\" needs a `[controller]` section".into());
+            }
+            return;
+        };
+        if !serial_turntable && !serial_lights {
+            bad("controller", "no device has kind = \"serial\", so this section is unused".into());
+        }
+        match crate::devices::serial::PortSpec::parse(&c.port) {
+            Ok(crate::devices::serial::PortSpec::Emulator(name)) => {
+                if name != c.dialect.name() {
+                    bad(
+                        "controller.port",
+                        format!("`emulator:{name}` must name the dialect `{}` (emulator:scanrig, emulator:horus or emulator:fabscan)", c.dialect.name()),
+                    );
+                }
+            }
+            Ok(_) => {}
+            Err(e) => bad("controller.port", e.to_string()),
+        }
+        if !(300..=4_000_000).contains(&c.baud) {
+            bad("controller.baud", format!("must be between 300 and 4000000, got {}", c.baud));
+        }
+        match c.steps_per_turn {
+            Some(0) => bad("controller.steps_per_turn", "must be at least 1".into()),
+            None if c.dialect != SerialDialect::Scanrig => bad(
+                "controller.steps_per_turn",
+                format!(
+                    "the {} dialect cannot ask the board; set it (a wrong value mirrors or stretches scans)",
+                    c.dialect.name()
+                ),
+            ),
+            _ => {}
+        }
+        if c.lasers > 255 || (c.dialect == SerialDialect::Fabscan && c.lasers > 2) {
+            bad("controller.lasers", "too many lasers for this dialect (FabScan: 2, others: 255)".into());
+        }
+        if !(c.speed_deg_per_s.is_finite() && c.speed_deg_per_s > 0.0) {
+            bad("controller.speed_deg_per_s", "must be a positive number".into());
+        }
+        if c.reply_timeout_ms == 0 || c.reply_timeout_ms > 60_000 {
+            bad("controller.reply_timeout_ms", "must be between 1 and 60000".into());
+        }
+        if c.retries > 20 {
+            bad("controller.retries", "must be at most 20".into());
+        }
+        if c.handshake_attempts == 0 || c.handshake_attempts > 20 {
+            bad("controller.handshake_attempts", "must be between 1 and 20".into());
+        }
+        if c.boot_ms > 30_000 {
+            bad("controller.boot_ms", "must be at most 30000".into());
+        }
+        if c.reconnect_max_ms == 0 || c.reconnect_max_ms > 600_000 {
+            bad("controller.reconnect_max_ms", "must be between 1 and 600000".into());
+        }
+        if let Some(lights) = &self.lights {
+            if serial_lights && lights.lasers.len() > c.lasers as usize && c.dialect != SerialDialect::Scanrig {
+                bad(
+                    "lights.laser",
+                    format!("{} lasers configured but the board has {}", lights.lasers.len(), c.lasers),
+                );
+            }
+        }
+        let e = &c.emulator;
+        if !(e.speed_deg_per_s.is_finite() && e.speed_deg_per_s > 0.0) {
+            bad("controller.emulator.speed_deg_per_s", "must be a positive number".into());
+        }
+        if e.steps_per_turn == Some(0) {
+            bad("controller.emulator.steps_per_turn", "must be at least 1".into());
+        }
+        if e.lights > 255 || e.boot_ms > 30_000 {
+            bad("controller.emulator", "lights must be at most 255 and boot_ms at most 30000".into());
+        }
+    }
+
     /// Every problem with the values of this rig (ranges, consistency between sections), at once.
     pub fn validate(&self) -> Vec<Problem> {
         let mut out = Vec::new();
@@ -132,7 +215,9 @@ impl RigConfig {
                     bad("turntable.speed_deg_per_s", format!("must be a positive number, got {}", t.speed_deg_per_s));
                 }
             }
+            TurntableConfig::Serial(_) => {}
         }
+        self.validate_controller(&mut bad);
 
         let light_count = self.lights.as_ref().map_or(0, |l| l.lights.len());
         if let Some(lights) = &self.lights {

@@ -24,6 +24,10 @@ pub struct RigConfig {
     /// `[depth_camera]`, optional.
     #[serde(default)]
     pub depth_camera: Option<DepthCameraConfig>,
+    /// `[controller]`: the serial board behind `kind = "serial"` devices (turntable and lights share
+    /// it).
+    #[serde(default)]
+    pub controller: Option<ControllerConfig>,
     /// `[sim]`: the simulated world; required when any device has `kind = "sim"`.
     #[serde(default)]
     pub sim: Option<SimConfig>,
@@ -50,6 +54,156 @@ pub struct RigSection {
 pub enum TurntableConfig {
     /// `kind = "sim"`: a simulated stepper.
     Sim(SimTurntableConfig),
+    /// `kind = "serial"`: the stepper of the `[controller]` board.
+    Serial(SerialTurntableConfig),
+}
+
+/// `[turntable] kind = "serial"`.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SerialTurntableConfig {
+    /// Turn the other way (for a motor wired in reverse): the angles the host asks for are negated
+    /// on the wire, so scans are not mirrored.
+    #[serde(default)]
+    pub reverse: bool,
+}
+
+/// `[controller]`: one microcontroller on one serial port, driving the turntable and the lights.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ControllerConfig {
+    /// The port: `/dev/serial/by-id/...` (preferred), `usb:VID:PID[:SERIAL]` (hex ids), a device path,
+    /// or `emulator:scanrig` / `emulator:horus` / `emulator:fabscan` for a firmware emulator on a
+    /// pseudo-terminal.
+    pub port: String,
+    /// The firmware's dialect.
+    #[serde(default)]
+    pub dialect: SerialDialect,
+    /// Bits per second.
+    #[serde(default = "default_baud")]
+    pub baud: u32,
+    /// Motor steps per full turn of the table. The scanrig dialect reads it from the board and, when
+    /// set here, refuses a board that differs; Horus and FabScan need it here.
+    #[serde(default)]
+    pub steps_per_turn: Option<u32>,
+    /// Line lasers on the board (Horus and FabScan; the scanrig dialect asks the board).
+    #[serde(default = "default_serial_lasers")]
+    pub lasers: u32,
+    /// Turntable speed for dialects that take one on the wire, degrees per second.
+    #[serde(default = "default_speed")]
+    pub speed_deg_per_s: f64,
+    /// Longest wait for the reply to one line, milliseconds.
+    #[serde(default = "default_reply_timeout")]
+    pub reply_timeout_ms: u64,
+    /// Times a line is sent again after a lost or damaged reply.
+    #[serde(default = "default_retries")]
+    pub retries: u32,
+    /// Longest wait for the board to boot after the port opens (Arduino auto-reset), milliseconds.
+    #[serde(default = "default_boot")]
+    pub boot_ms: u64,
+    /// Handshake attempts per connection.
+    #[serde(default = "default_handshake_attempts")]
+    pub handshake_attempts: u32,
+    /// Longest pause between reconnection attempts, milliseconds (the backoff doubles up to it).
+    #[serde(default = "default_reconnect_max")]
+    pub reconnect_max_ms: u64,
+    /// Checksums on every line (scanrig dialect).
+    #[serde(default = "yes")]
+    pub checksum: bool,
+    /// Board watchdog: everything off after this much host silence, milliseconds; 0 = off
+    /// (scanrig dialect).
+    #[serde(default)]
+    pub watchdog_ms: u32,
+    /// `[controller.emulator]`: the emulated board, for `port = "emulator:..."`.
+    #[serde(default)]
+    pub emulator: EmulatorConfig,
+}
+
+/// Firmware dialects for `[controller] dialect`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SerialDialect {
+    /// The scanrig line protocol v1.
+    #[default]
+    Scanrig,
+    /// Horus firmware (GRBL-derived, Ciclop scanners).
+    Horus,
+    /// FabScanPi firmware.
+    Fabscan,
+}
+
+impl SerialDialect {
+    /// The name used in TOML and in `emulator:<name>`.
+    pub fn name(self) -> &'static str {
+        match self {
+            SerialDialect::Scanrig => "scanrig",
+            SerialDialect::Horus => "horus",
+            SerialDialect::Fabscan => "fabscan",
+        }
+    }
+}
+
+/// `[controller.emulator]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EmulatorConfig {
+    /// Emulated table speed, degrees per second.
+    #[serde(default = "default_emulator_speed")]
+    pub speed_deg_per_s: f64,
+    /// Emulated boot time after the port opens, milliseconds.
+    #[serde(default = "default_emulator_boot")]
+    pub boot_ms: u64,
+    /// Emulated board's steps per turn (defaults to `[controller] steps_per_turn`, else 3200).
+    #[serde(default)]
+    pub steps_per_turn: Option<u32>,
+    /// Emulated white lights (scanrig emulator).
+    #[serde(default = "default_emulator_lights")]
+    pub lights: u32,
+}
+
+impl Default for EmulatorConfig {
+    fn default() -> Self {
+        EmulatorConfig {
+            speed_deg_per_s: default_emulator_speed(),
+            boot_ms: default_emulator_boot(),
+            steps_per_turn: None,
+            lights: default_emulator_lights(),
+        }
+    }
+}
+
+fn default_baud() -> u32 {
+    115_200
+}
+fn default_serial_lasers() -> u32 {
+    2
+}
+fn default_reply_timeout() -> u64 {
+    500
+}
+fn default_retries() -> u32 {
+    3
+}
+fn default_boot() -> u64 {
+    2500
+}
+fn default_handshake_attempts() -> u32 {
+    5
+}
+fn default_reconnect_max() -> u64 {
+    5000
+}
+fn yes() -> bool {
+    true
+}
+fn default_emulator_speed() -> f64 {
+    720.0
+}
+fn default_emulator_boot() -> u64 {
+    20
+}
+fn default_emulator_lights() -> u32 {
+    4
 }
 
 /// `[turntable] kind = "sim"`.
@@ -95,6 +249,8 @@ pub struct LightsConfig {
 pub enum LightsKind {
     /// Simulated lights that light the simulated scene.
     Sim,
+    /// The lights and lasers of the `[controller]` board.
+    Serial,
 }
 
 /// One white point light.

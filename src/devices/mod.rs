@@ -10,6 +10,7 @@ pub mod depth;
 pub mod lights;
 pub mod projector;
 pub mod registry;
+pub mod serial;
 pub mod turntable;
 
 use std::time::Duration;

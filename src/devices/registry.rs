@@ -20,6 +20,8 @@ pub struct Rig {
     pub depth_camera: Option<Box<dyn DepthCamera>>,
     /// The simulated world, when any device is simulated: the ground truth for evaluation.
     pub sim: Option<SimWorld>,
+    /// The serial board's controller (and its emulator), when the rig has a `[controller]`.
+    pub serial: Option<super::serial::OpenedController>,
 }
 
 /// Open every device the config names.
@@ -35,13 +37,36 @@ pub fn build_rig(config: &RigConfig) -> Result<Rig, DeviceError> {
             problem: "kind = \"sim\" needs a [sim] section".into(),
         })
     };
+    // The turntable and lights of a serial rig share one controller on one port. With
+    // `port = "emulator:..."` the emulator drives the hardware given here (None: a recorder); pass
+    // the simulated world once it implements `serial::EmulatedHardware`.
+    let serial = match &config.controller {
+        Some(c) => Some(super::serial::open_controller(c, None)?),
+        None => None,
+    };
+    let need_serial = |device: &str| {
+        serial.clone().ok_or_else(|| DeviceError::InvalidConfig {
+            device: device.to_owned(),
+            field: "kind",
+            problem: "kind = \"serial\" needs a [controller] section".into(),
+        })
+    };
     let turntable: Box<dyn Turntable> = match &config.turntable {
         TurntableConfig::Sim(c) => Box::new(super::turntable::sim::SimTurntable::new(need_sim("turntable")?, c)),
+        TurntableConfig::Serial(t) => {
+            let spt = config.controller.as_ref().and_then(|c| c.steps_per_turn).unwrap_or(3200);
+            Box::new(super::serial::SerialTurntable::new(need_serial("turntable")?.controller, t.reverse, spt))
+        }
     };
     let lights: Option<Box<dyn LightArray>> = match &config.lights {
         None => None,
         Some(l) => match l.kind {
             LightsKind::Sim => Some(Box::new(super::lights::sim::SimLightArray::new(need_sim("lights")?))),
+            LightsKind::Serial => Some(Box::new(super::serial::SerialLightArray::new(
+                need_serial("lights")?.controller,
+                l.lights.len(),
+                l.lasers.len(),
+            ))),
         },
     };
     let camera: Box<dyn Camera> = match &config.camera {
@@ -59,5 +84,5 @@ pub fn build_rig(config: &RigConfig) -> Result<Rig, DeviceError> {
             Some(Box::new(super::depth::sim::SimDepthCamera::new(need_sim("depth_camera")?, d)))
         }
     };
-    Ok(Rig { turntable, lights, camera, projector, depth_camera, sim })
+    Ok(Rig { turntable, lights, camera, projector, depth_camera, sim, serial })
 }
