@@ -38,10 +38,13 @@ pub fn build_rig(config: &RigConfig) -> Result<Rig, DeviceError> {
         })
     };
     // The turntable and lights of a serial rig share one controller on one port. With
-    // `port = "emulator:..."` the emulator drives the hardware given here (None: a recorder); pass
-    // the simulated world once it implements `serial::EmulatedHardware`.
+    // `port = "emulator:..."` the emulator drives the simulated world (or, without one, a recorder).
     let serial = match &config.controller {
-        Some(c) => Some(super::serial::open_controller(c, None)?),
+        Some(c) => {
+            let hardware =
+                sim.clone().map(|w| std::sync::Arc::new(w) as std::sync::Arc<dyn super::serial::EmulatedHardware>);
+            Some(super::serial::open_controller(c, hardware)?)
+        }
         None => None,
     };
     let need_serial = |device: &str| {

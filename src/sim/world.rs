@@ -178,3 +178,24 @@ impl SimWorld {
         self.inner.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
+
+/// The simulated world is the hardware behind an emulated serial board: a scan through the real
+/// serial code path (`port = "emulator:..."`) turns and lights the same simulated scene. A light or
+/// laser index the scene does not have is a pin with nothing connected: ignored, logged at debug.
+impl crate::devices::serial::EmulatedHardware for SimWorld {
+    fn set_angle(&self, degrees: f64) {
+        self.set_turntable_angle(degrees);
+    }
+
+    fn set_light(&self, index: usize, level: f32) {
+        if let Err(e) = SimWorld::set_light(self, index, level) {
+            tracing::debug!(index, level, error = %e, "emulated board drives a light the scene does not have");
+        }
+    }
+
+    fn set_laser(&self, index: usize, on: bool) {
+        if let Err(e) = SimWorld::set_laser(self, index, on) {
+            tracing::debug!(index, on, error = %e, "emulated board drives a laser the scene does not have");
+        }
+    }
+}
