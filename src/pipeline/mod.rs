@@ -5,14 +5,17 @@
 //! - [`occupancy`]: brick-compressed voxel occupancy, overlap measures.
 //! - [`space_carving`]: the visual hull, dense reference and hierarchical incremental carver.
 //! - [`mesh`]: watertight surface extraction from an occupancy.
+//! - [`coloring`]: per-vertex colours from calibrated images.
 //! - [`export`]: PLY / STL / OBJ writers, written atomically.
 
+pub mod coloring;
 pub mod export;
 pub mod mesh;
 pub mod occupancy;
 pub mod silhouette;
 pub mod space_carving;
 
+pub use coloring::{color_vertices, ColorView};
 pub use export::ExportError;
 pub use mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
