@@ -20,4 +20,24 @@ pub use export::ExportError;
 pub use mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
 pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
-pub use space_carving::{carve_dense, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
+pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
+
+/// Any error of the reconstruction layer, for callers that handle them alike (each keeps its cause).
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    /// Space carving failed.
+    #[error("space carving failed")]
+    Carve(#[from] CarveError),
+    /// Surface extraction failed.
+    #[error("surface extraction failed")]
+    Mesh(#[from] MeshError),
+    /// Writing a file failed.
+    #[error("export failed")]
+    Export(#[from] ExportError),
+    /// Two occupancies are on different grids.
+    #[error("evaluation failed")]
+    Grid(#[from] GridMismatch),
+    /// A mask buffer has the wrong size.
+    #[error("bad mask")]
+    Mask(#[from] MaskSizeError),
+}

@@ -5,7 +5,7 @@
 //! in which the centre is behind the camera (camera-frame `z <= 0`) or falls outside the image does not
 //! carve it. A projected point `(x, y)` falls in pixel `(floor x, floor y)`.
 //!
-//! The projection of voxel `(i, j, k)` is evaluated by one function, [`Projector::pixel`], shared by
+//! The projection of voxel `(i, j, k)` is evaluated by one function (`Projector::project_index`), shared by
 //! the dense reference and the hierarchical carver: camera coordinates `c = a + i·dᵢ + j·dⱼ + k·dₖ`
 //! in `f32` (without distortion the rows are those of `P = K[R|t]` so `c` is homogeneous pixels;
 //! with distortion they are those of `[R|t]` and the two-term radial model and `K` follow, in `f32`).
