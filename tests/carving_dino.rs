@@ -83,6 +83,19 @@ fn dino_at_256_matches_the_reference_count_and_reprojects() {
 }
 
 #[test]
+fn dino_on_the_grown_box_matches_the_reference_count() {
+    // The data set's box grown by 5 mm on every side, 256 voxels along its longest side.
+    let grown = Aabb { min: DINO_BOX.min.map(|x| x - 0.005), max: DINO_BOX.max.map(|x| x + 0.005) };
+    let ds = fixture();
+    let mut carver = SpaceCarver::new(VoxelGrid::from_resolution(&grown, 256)).expect("carver");
+    carver.add_views(&ds.carving_views()).expect("carve");
+    assert_eq!(carver.grid().dims, [219, 256, 220]);
+    let count = carver.occupancy().count();
+    println!("dino grown box 256: {count} voxels (reference 2,237,853)");
+    assert!((count as f64 - 2_237_853.0).abs() / 2_237_853.0 < 0.01, "{count}");
+}
+
+#[test]
 fn dino_mesh_is_watertight() {
     let ds = fixture();
     let occ = carve(&ds, 96);

@@ -334,10 +334,11 @@ pub enum ViewSelection {
 }
 
 impl ViewSelection {
-    /// A path to an existing file selects from that file; anything else is a comma-separated list.
+    /// A path to an existing file (or any name ending in `.txt`, so that a missing list file is reported
+    /// as such) selects from that file; anything else is a comma-separated list.
     pub fn parse(spec: &str) -> ViewSelection {
         let p = Path::new(spec);
-        if p.is_file() {
+        if p.is_file() || spec.ends_with(".txt") {
             ViewSelection::File(p.to_path_buf())
         } else {
             ViewSelection::Names(spec.split(',').map(|s| s.trim().to_string()).filter(|s| !s.is_empty()).collect())

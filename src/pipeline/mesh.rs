@@ -112,6 +112,9 @@ pub fn extract_surface(occupancy: &Occupancy, params: &MeshParams) -> Result<Tri
     if r > MeshParams::MAX_SMOOTH_RADIUS {
         return Err(MeshError::SmoothRadius { radius: r, max: MeshParams::MAX_SMOOTH_RADIUS });
     }
+    if occupancy.grid().is_empty() {
+        return Ok(TriangleMesh::default());
+    }
     let r = r as i64;
     let dims = occupancy.grid().dims.map(|d| d as i64);
     // Lattice points p in [0, D+2) per axis (point p is voxel p-1); cells c in [0, D+1).
@@ -362,5 +365,8 @@ mod tests {
         let g = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [1.0; 3] }, 9);
         let mesh = extract_surface(&Occupancy::empty(g), &MeshParams::default()).expect("mesh");
         assert!(mesh.triangles.is_empty() && mesh.vertices.is_empty());
+        let none = VoxelGrid { dims: [0, 4, 4], ..g };
+        let mesh = extract_surface(&Occupancy::full(none), &MeshParams::default()).expect("mesh");
+        assert!(mesh.triangles.is_empty());
     }
 }

@@ -5,16 +5,39 @@
 //! - [`occupancy`]: brick-compressed voxel occupancy, overlap measures.
 //! - [`space_carving`]: the visual hull, dense reference and hierarchical incremental carver.
 //! - [`mesh`]: watertight surface extraction from an occupancy.
+//! - [`coloring`]: per-vertex colours from calibrated images.
 //! - [`export`]: PLY / STL / OBJ writers, written atomically.
 
+pub mod coloring;
 pub mod export;
 pub mod mesh;
 pub mod occupancy;
 pub mod silhouette;
 pub mod space_carving;
 
+pub use coloring::{color_vertices, ColorView};
 pub use export::ExportError;
 pub use mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
 pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
-pub use space_carving::{carve_dense, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
+pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
+
+/// Any error of the reconstruction layer, for callers that handle them alike (each keeps its cause).
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    /// Space carving failed.
+    #[error("space carving failed")]
+    Carve(#[from] CarveError),
+    /// Surface extraction failed.
+    #[error("surface extraction failed")]
+    Mesh(#[from] MeshError),
+    /// Writing a file failed.
+    #[error("export failed")]
+    Export(#[from] ExportError),
+    /// Two occupancies are on different grids.
+    #[error("evaluation failed")]
+    Grid(#[from] GridMismatch),
+    /// A mask buffer has the wrong size.
+    #[error("bad mask")]
+    Mask(#[from] MaskSizeError),
+}

@@ -5,7 +5,7 @@
 //! in which the centre is behind the camera (camera-frame `z <= 0`) or falls outside the image does not
 //! carve it. A projected point `(x, y)` falls in pixel `(floor x, floor y)`.
 //!
-//! The projection of voxel `(i, j, k)` is evaluated by one function, [`Projector::pixel`], shared by
+//! The projection of voxel `(i, j, k)` is evaluated by one function (`Projector::project_index`), shared by
 //! the dense reference and the hierarchical carver: camera coordinates `c = a + i·dᵢ + j·dⱼ + k·dₖ`
 //! in `f32` (without distortion the rows are those of `P = K[R|t]` so `c` is homogeneous pixels;
 //! with distortion they are those of `[R|t]` and the two-term radial model and `K` follow, in `f32`).
@@ -25,7 +25,10 @@
 //! - the rectangle is wholly inside the image and holds no object pixel -> the cell is carved;
 //! - otherwise the cell is subdivided, carrying only the undecided views.
 //!
-//! Cells go 32³ (a block) -> 16³ -> 8³ (a brick) -> 4³ -> single voxels (per-voxel test).
+//! Cells go 32³ (a block) -> 16³ -> 8³ (a brick) -> 4³ -> single voxels (per-voxel test, four voxels
+//! of a row projected together, early exit once the row is carved). The view that carved the last cell
+//! is tried first in the next one. Each view's verdict on a cell is sound on its own, so neither the
+//! order of views nor the hint changes the result.
 
 use nalgebra::{Matrix3x4, Vector4};
 use rayon::prelude::*;
@@ -147,17 +150,14 @@ impl Projector {
         Projector { a, d, dist, width: camera.width as usize, wf: camera.width as f32, hf: camera.height as f32, scale }
     }
 
-    /// The pixel voxel `(i, j, k)`'s centre falls in, `None` when behind the camera or outside the image.
+    /// Camera depth `z` and continuous pixel coordinates of voxel `(fi, fj, fk)`'s centre: the one
+    /// formula every carver uses (see the module docs).
     #[inline(always)]
-    pub(crate) fn pixel(&self, i: usize, j: usize, k: usize) -> Option<(usize, usize)> {
-        let (fi, fj, fk) = (i as f32, j as f32, k as f32);
+    fn project_index(&self, fi: f32, fj: f32, fk: f32) -> (f32, f32, f32) {
         let d = &self.d;
         let x = self.a[0] + fi * d[0][0] + fj * d[1][0] + fk * d[2][0];
         let y = self.a[1] + fi * d[0][1] + fj * d[1][1] + fk * d[2][1];
         let z = self.a[2] + fi * d[0][2] + fj * d[1][2] + fk * d[2][2];
-        if z.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-            return None;
-        }
         let (u, v) = match &self.dist {
             None => (x / z, y / z),
             Some(p) => {
@@ -168,13 +168,41 @@ impl Projector {
                 (p.fx * xd + p.skew * yd + p.cx, p.fy * yd + p.cy)
             }
         };
-        // floor(u) is in [0, W) exactly when u is in [0, W) (W an integer), and truncation equals
-        // floor for non-negative values: no call to floorf in the hot loop.
-        if u >= 0.0 && v >= 0.0 && u < self.wf && v < self.hf {
+        (z, u, v)
+    }
+
+    /// The pixel voxel `(i, j, k)`'s centre falls in, `None` when behind the camera or outside the image.
+    #[inline(always)]
+    pub(crate) fn pixel(&self, i: usize, j: usize, k: usize) -> Option<(usize, usize)> {
+        let (z, u, v) = self.project_index(i as f32, j as f32, k as f32);
+        // `z > 0` is false for NaN too. floor(u) is in [0, W) exactly when u is in [0, W) (W an
+        // integer), and truncation equals floor for non-negative values: no floorf call in the hot loop.
+        if z > 0.0 && u >= 0.0 && v >= 0.0 && u < self.wf && v < self.hf {
             Some((u as usize, v as usize))
         } else {
             None
         }
+    }
+
+    /// Which of the four voxels `(i0 + l, j, k)`, `l = 0..4`, the view keeps, as bit `l`. Same test as
+    /// [`Projector::keeps`] lane by lane (the four projections are independent, so they vectorise).
+    #[inline(always)]
+    fn keeps4(&self, mask: &[u8], i0: usize, j: usize, k: usize) -> u64 {
+        let (fj, fk) = (j as f32, k as f32);
+        let mut zuv = [(0f32, 0f32, 0f32); 4];
+        for (l, q) in zuv.iter_mut().enumerate() {
+            *q = self.project_index((i0 + l) as f32, fj, fk);
+        }
+        let mut out = 0u64;
+        for (l, &(z, u, v)) in zuv.iter().enumerate() {
+            let kept = if z > 0.0 && u >= 0.0 && v >= 0.0 && u < self.wf && v < self.hf {
+                mask[v as usize * self.width + u as usize] != 0
+            } else {
+                true
+            };
+            out |= (kept as u64) << l;
+        }
+        out
     }
 
     /// Does the view keep voxel `(i, j, k)`?
@@ -189,20 +217,30 @@ impl Projector {
     /// A conservative pixel rectangle `[x0, x1] x [y0, y1]` (continuous coordinates) holding the computed
     /// pixel of every voxel centre in `[lo, hi]` (inclusive indices), or `Behind` / `Unknown`.
     fn cell_bound(&self, lo: [usize; 3], hi: [usize; 3]) -> CellBound {
+        // Corner `lo` and the three edge vectors of the box of centres; corners by addition.
+        let mut base = [0f64; 3];
+        let mut edges = [[0f64; 3]; 3];
+        for c in 0..3 {
+            base[c] = self.a[c] as f64
+                + lo[0] as f64 * self.d[0][c] as f64
+                + lo[1] as f64 * self.d[1][c] as f64
+                + lo[2] as f64 * self.d[2][c] as f64;
+            for (axis, e) in edges.iter_mut().enumerate() {
+                e[c] = (hi[axis] - lo[axis]) as f64 * self.d[axis][c] as f64;
+            }
+        }
+        let mut pts = [[0f64; 3]; 8];
         let mut zmin = f64::INFINITY;
         let mut zmax = f64::NEG_INFINITY;
-        let mut pts = [[0f64; 3]; 8];
         for (n, p) in pts.iter_mut().enumerate() {
-            let idx = [
-                if n & 1 == 0 { lo[0] } else { hi[0] } as f64,
-                if n & 2 == 0 { lo[1] } else { hi[1] } as f64,
-                if n & 4 == 0 { lo[2] } else { hi[2] } as f64,
-            ];
             for (c, pc) in p.iter_mut().enumerate() {
-                *pc = self.a[c] as f64
-                    + idx[0] * self.d[0][c] as f64
-                    + idx[1] * self.d[1][c] as f64
-                    + idx[2] * self.d[2][c] as f64;
+                let mut v = base[c];
+                for (axis, e) in edges.iter().enumerate() {
+                    if n >> axis & 1 == 1 {
+                        v += e[c];
+                    }
+                }
+                *pc = v;
             }
             zmin = zmin.min(p[2]);
             zmax = zmax.max(p[2]);
@@ -216,7 +254,8 @@ impl Projector {
         }
         let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
         for p in &pts {
-            let (x, y) = (p[0] / p[2], p[1] / p[2]);
+            let inv = 1.0 / p[2];
+            let (x, y) = (p[0] * inv, p[1] * inv);
             x0 = x0.min(x);
             x1 = x1.max(x);
             y0 = y0.min(y);
@@ -424,6 +463,8 @@ struct PassCtx<'a> {
 /// Per-task scratch: candidate view lists per octree level.
 struct Scratch {
     lists: Vec<Vec<u16>>,
+    /// The view that carved the last carved cell (`u16::MAX`: none yet).
+    hint: u16,
 }
 
 /// Levels: 0 block (32), 1 (16), 2 brick (8), 3 (4), 4 voxels.
@@ -489,7 +530,7 @@ impl SpaceCarver {
         };
         let n = views.len();
         self.occupancy.blocks_mut().par_iter_mut().enumerate().for_each_init(
-            || Scratch { lists: (0..LEVELS).map(|_| Vec::with_capacity(n)).collect() },
+            || Scratch { lists: (0..LEVELS).map(|_| Vec::with_capacity(n)).collect(), hint: u16::MAX },
             |scratch, (bi, block)| carve_block(&ctx, bi, block, scratch),
         );
         self.views_applied += n;
@@ -512,14 +553,28 @@ fn carve_block(ctx: &PassCtx<'_>, bi: usize, block: &mut Block, scratch: &mut Sc
 /// Filter the candidate views of `level` for the cell `[lo, hi]` into `level + 1`.
 /// Returns false when some view carves the whole cell.
 fn filter_views(ctx: &PassCtx<'_>, scratch: &mut Scratch, level: usize, lo: [usize; 3], hi: [usize; 3]) -> bool {
+    // Neighbouring cells tend to be carved by the same view: try the last carving view first. Every
+    // verdict is sound on its own, so testing a view that is no longer a candidate is harmless.
+    let hint = scratch.hint;
+    let mut hint_verdict = Verdict::Keep;
+    if (hint as usize) < ctx.projectors.len() {
+        hint_verdict = classify(&ctx.projectors[hint as usize], &ctx.sats[hint as usize], lo, hi);
+        if hint_verdict == Verdict::Carve {
+            return false;
+        }
+    }
     let (cur, next) = scratch.lists.split_at_mut(level + 1);
     let (cur, next) = (&cur[level], &mut next[0]);
     next.clear();
     for &v in cur {
         let v_us = v as usize;
-        match classify(&ctx.projectors[v_us], &ctx.sats[v_us], lo, hi) {
+        let verdict = if v == hint { hint_verdict } else { classify(&ctx.projectors[v_us], &ctx.sats[v_us], lo, hi) };
+        match verdict {
             Verdict::Keep => {}
-            Verdict::Carve => return false,
+            Verdict::Carve => {
+                scratch.hint = v;
+                return false;
+            }
             Verdict::Undecided => next.push(v),
         }
     }
@@ -607,16 +662,18 @@ fn carve_brick(ctx: &PassCtx<'_>, block: &mut Block, scratch: &mut Scratch, leve
         if cand.is_empty() {
             continue;
         }
-        for z in s[2]..s[2] + 4 {
-            let mut w = bits[z] & sub[z];
-            while w != 0 {
-                let b = w.trailing_zeros() as usize;
-                w &= w - 1;
-                let (i, j, k) = (o[0] + (b & 7), o[1] + (b >> 3), o[2] + z);
-                let kept = cand.iter().all(|&v| ctx.projectors[v as usize].keeps(ctx.masks[v as usize], i, j, k));
-                if !kept {
-                    bits[z] &= !(1u64 << b);
+        // Row by row (four voxels along x, projected together), with an early exit once the row is empty.
+        for (z, word) in bits.iter_mut().enumerate().skip(s[2]).take(4) {
+            for y in s[1]..s[1] + 4 {
+                let shift = 8 * y + s[0];
+                let mut row = (*word >> shift) & 0xf;
+                for &v in cand.iter() {
+                    if row == 0 {
+                        break;
+                    }
+                    row &= ctx.projectors[v as usize].keeps4(ctx.masks[v as usize], o[0] + s[0], o[1] + y, o[2] + z);
                 }
+                *word = (*word & !(0xf << shift)) | (row << shift);
             }
         }
     }
