@@ -219,7 +219,7 @@ pub fn parse_silhouette(s: &str) -> Result<crate::pipeline::SilhouetteParams, St
             }
             "dilate" | "erode" => {
                 let r = num(v)?;
-                if !(r >= 0.0 && r <= 64.0 && r.fract() == 0.0) {
+                if !((0.0..=64.0).contains(&r) && r.fract() == 0.0) {
                     return Err(format!("`{k}` must be a whole number of pixels from 0 to 64"));
                 }
                 if k.trim() == "dilate" {

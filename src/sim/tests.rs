@@ -80,7 +80,8 @@ fn every_object_point_stands_out_in_every_view_of_every_shipped_rig() {
         let points = world.scene().sample_surface(300, 9);
         let bbox = rig.reconstruction.bbox();
         let b = world.scene().bounds();
-        assert!((0..3).all(|k| bbox.min[k] < b.min[k] && bbox.max[k] > b.max[k]), "{}: bbox", path.display());
+        // The working volume may start at the table top, where the objects rest.
+        assert!((0..3).all(|k| bbox.min[k] <= b.min[k] && bbox.max[k] > b.max[k]), "{}: bbox", path.display());
         let mut dimmest = f32::INFINITY;
         for i in 0..rig.scan.positions {
             let angle = rig.scan.start_deg + 360.0 * i as f64 / rig.scan.positions as f64;
@@ -144,7 +145,7 @@ fn renderer_agrees_with_camera_model_projection() {
                 assert_eq!(view.pixel_of(&q), Some((u, v)), "{angle}°: drawn at ({u},{v})");
                 let s = world.scene();
                 assert!(
-                    !s.contains(&(q - d * 2e-5)) && s.contains(&(q + d * 2e-5)),
+                    !s.contains(&(q - d * 2e-6)) && s.contains(&(q + d * 2e-6)),
                     "{angle}°: {q} not on the surface"
                 );
             }
