@@ -134,8 +134,8 @@ impl OutputDir {
             what: "cannot read frame metadata",
             source,
         })?;
-        let meta: FrameMeta =
-            serde_json::from_slice(&bytes).map_err(|source| ScanError::FrameMeta { path: meta_path.clone(), source })?;
+        let meta: FrameMeta = serde_json::from_slice(&bytes)
+            .map_err(|source| ScanError::FrameMeta { path: meta_path.clone(), source })?;
         let png = dir.join(format!("pos_{position:03}.png"));
         let image = image::open(&png).map_err(|source| ScanError::EncodeFrame { path: png.clone(), source })?.to_rgb8();
         Ok((meta, image))

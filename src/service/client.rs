@@ -94,7 +94,8 @@ impl Client {
         let mut stream = TcpStream::connect_timeout(&self.addr, self.timeout).map_err(self.io())?;
         stream.set_read_timeout(Some(self.timeout)).map_err(self.io())?;
         stream.set_write_timeout(Some(self.timeout)).map_err(self.io())?;
-        let mut head = format!("{method} {path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\nAccept: {accept}\r\n", self.host);
+        let mut head =
+            format!("{method} {path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\nAccept: {accept}\r\n", self.host);
         if let Some(t) = &self.token {
             head.push_str(&format!("Authorization: Bearer {t}\r\n"));
         }
@@ -118,7 +119,9 @@ impl Client {
         let mut body = Vec::new();
         if chunked {
             ChunkedReader::new(reader).read_to_end(&mut body).map_err(self.io())?;
-        } else if let Some(len) = headers.iter().find(|(k, _)| k == "content-length").and_then(|(_, v)| v.parse::<u64>().ok()) {
+        } else if let Some(len) =
+            headers.iter().find(|(k, _)| k == "content-length").and_then(|(_, v)| v.parse::<u64>().ok())
+        {
             reader.take(len).read_to_end(&mut body).map_err(self.io())?;
         } else {
             reader.read_to_end(&mut body).map_err(self.io())?;
@@ -160,7 +163,11 @@ impl Client {
         let mut reader = BufReader::new(stream);
         let (status, headers) = read_head(&mut reader).map_err(|e| e.with_addr(self.addr))?;
         if status != 200 {
-            return Err(ClientError::Api { status, code: "events".into(), message: "cannot open the event stream".into() });
+            return Err(ClientError::Api {
+                status,
+                code: "events".into(),
+                message: "cannot open the event stream".into(),
+            });
         }
         let chunked = headers.iter().any(|(k, v)| k == "transfer-encoding" && v.contains("chunked"));
         let body: Box<dyn Read> = if chunked { Box::new(ChunkedReader::new(reader)) } else { Box::new(reader) };
@@ -184,6 +191,40 @@ impl Client {
             }
         }
     }
+}
+
+/// Download scan `id`'s results (`model.ply`, `model.stl`, `model.obj`, `voxels.ply`,
+/// `report.json`, `meta.json`) into `out`, each written atomically. Returns the names written.
+pub fn fetch_results(client: &Client, id: &str, out: &std::path::Path) -> Result<Vec<&'static str>, FetchError> {
+    std::fs::create_dir_all(out).map_err(|source| FetchError::Write { path: out.to_owned(), source })?;
+    let mut written = Vec::new();
+    for name in ["report.json", "meta.json", "model.ply", "model.stl", "model.obj", "voxels.ply"] {
+        let r = client.request("GET", &format!("/api/v1/scans/{id}/files/{name}"), None).map_err(FetchError::Client)?;
+        let path = out.join(name);
+        crate::pipeline::export::write_atomic(&path, &r.body).map_err(FetchError::Export)?;
+        written.push(name);
+    }
+    Ok(written)
+}
+
+/// Why fetching results failed.
+#[derive(Debug, thiserror::Error)]
+pub enum FetchError {
+    /// The request failed.
+    #[error("download failed")]
+    Client(#[source] ClientError),
+    /// The output directory cannot be created.
+    #[error("cannot create {path}")]
+    Write {
+        /// The directory.
+        path: std::path::PathBuf,
+        /// The error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A file cannot be written.
+    #[error("cannot write a result file")]
+    Export(#[source] crate::pipeline::export::ExportError),
 }
 
 enum HeadError {

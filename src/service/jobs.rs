@@ -162,7 +162,12 @@ impl Jobs {
         }
         let meta = self
             .store
-            .create(&config.rig.name, config.reconstruction.method.name(), config.scan.positions, config.scan.lights.clone())
+            .create(
+                &config.rig.name,
+                config.reconstruction.method.name(),
+                config.scan.positions,
+                config.scan.lights.clone(),
+            )
             .map_err(JobError::Store)?;
         self.launch(&mut active, meta.clone(), config, false);
         Ok(meta)

@@ -57,7 +57,8 @@ impl Metrics {
         counter("scanrig_device_errors_total", "Device errors.", get(&self.device_errors));
         counter("scanrig_reconnects_total", "Device reconnections.", get(&self.reconnects));
         counter("scanrig_http_requests_total", "HTTP requests served.", get(&self.http_requests));
-        let _ = writeln!(out, "# HELP scanrig_scan_running Whether a scan is running.\n# TYPE scanrig_scan_running gauge");
+        let _ =
+            writeln!(out, "# HELP scanrig_scan_running Whether a scan is running.\n# TYPE scanrig_scan_running gauge");
         let _ = writeln!(out, "scanrig_scan_running {}", u8::from(scan_running));
         let _ = writeln!(
             out,

@@ -124,7 +124,8 @@ pub async fn run(
             }
         });
     }
-    let server = axum::serve(listener, api::router(state.clone())).with_graceful_shutdown(token.clone().cancelled_owned());
+    let server =
+        axum::serve(listener, api::router(state.clone())).with_graceful_shutdown(token.clone().cancelled_owned());
     let server = tokio::spawn(async move { server.await });
     on_listening(addr);
     if let Err(e) = notify::notify("READY=1\nSTATUS=listening") {
@@ -171,7 +172,9 @@ async fn reload_on_sighup(path: PathBuf, state: api::AppState, token: Cancellati
         }
         let _ = notify::notify("RELOADING=1");
         match crate::config::load(&path) {
-            Err(e) => tracing::error!(error = %rig::error_chain(&e), "reload: the new rig file is invalid; keeping the old one"),
+            Err(e) => {
+                tracing::error!(error = %rig::error_chain(&e), "reload: the new rig file is invalid; keeping the old one")
+            }
             Ok(_) if state.jobs.running().is_some() => {
                 tracing::warn!("reload: a scan is running; keeping the old config")
             }

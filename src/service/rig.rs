@@ -126,13 +126,16 @@ const RECONNECT_MAX: Duration = Duration::from_secs(8);
 impl RigHandle {
     /// Start the device thread for `config`. It opens the devices at once and keeps retrying.
     /// The thread parks the hardware and exits when every handle is dropped.
-    pub fn spawn(config: Arc<RigConfig>, metrics: Arc<Metrics>) -> std::io::Result<(RigHandle, std::thread::JoinHandle<()>)> {
+    pub fn spawn(
+        config: Arc<RigConfig>,
+        metrics: Arc<Metrics>,
+    ) -> std::io::Result<(RigHandle, std::thread::JoinHandle<()>)> {
         let (tx, rx) = mpsc::sync_channel(8);
         let status: RigStatus = Arc::new(Mutex::new(device_list(&config, DeviceState::Reconnecting, None)));
         let thread_status = status.clone();
-        let join = std::thread::Builder::new()
-            .name("devices".into())
-            .spawn(move || DeviceThread { config, rig: None, status: thread_status, metrics, ever_connected: false }.run(rx))?;
+        let join = std::thread::Builder::new().name("devices".into()).spawn(move || {
+            DeviceThread { config, rig: None, status: thread_status, metrics, ever_connected: false }.run(rx)
+        })?;
         Ok((RigHandle { tx, status }, join))
     }
 
