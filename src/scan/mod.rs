@@ -208,7 +208,6 @@ fn scan_into(
         drop(rx);
         acquisition.join().map_err(|_| ScanError::AcquisitionPanicked)
     })?;
-    drop(carve_one);
     for p in progress_rx.try_iter() {
         events(ScanEvent::Acquisition(p));
     }
