@@ -18,4 +18,5 @@ pub mod devices;
 pub mod geometry;
 pub mod pipeline;
 pub mod scan;
+pub mod service;
 pub mod sim;

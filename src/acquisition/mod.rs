@@ -148,9 +148,22 @@ pub fn run_turntable_scan(
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
-    let result = turntable_scan_steps(rig, plan, views, cancel, progress);
+    run_turntable_scan_from(rig, plan, 0, views, cancel, progress)
+}
+
+/// [`run_turntable_scan`] starting at position `first` (0-based): positions before it are taken as
+/// already captured (a resumed scan). The summary counts only the views captured by this call.
+pub fn run_turntable_scan_from(
+    rig: &mut Rig,
+    plan: &ScanPlan,
+    first: usize,
+    views: &SyncSender<CapturedView>,
+    cancel: &CancelToken,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<AcquisitionSummary, AcquisitionError> {
+    let result = turntable_scan_steps(rig, plan, first, views, cancel, progress);
     let total = plan.positions as usize;
-    progress(&Progress { step: result.as_ref().map_or(0, |s| s.views), total, stage: Stage::Parking });
+    progress(&Progress { step: result.as_ref().map_or(first, |s| first + s.views), total, stage: Stage::Parking });
     let parked = park(rig, plan);
     match (result, parked) {
         (Ok(summary), Ok(())) => {
@@ -191,6 +204,7 @@ pub fn park(rig: &mut Rig, plan: &ScanPlan) -> Result<(), DeviceError> {
 fn turntable_scan_steps(
     rig: &mut Rig,
     plan: &ScanPlan,
+    first: usize,
     views: &SyncSender<CapturedView>,
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
@@ -202,7 +216,7 @@ fn turntable_scan_steps(
     let mut sequence = SequenceTracker::default();
     let mut lights_set = false;
 
-    for position in 0..total {
+    for position in first..total {
         if cancel.is_cancelled() {
             return Err(AcquisitionError::Cancelled { completed: position, total });
         }

@@ -8,6 +8,7 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use scanrig::acquisition::{CancelToken, Stage};
 use scanrig::scan::{self, reconstruct, ScanEvent};
+use scanrig::service::client::{self, Client};
 
 #[derive(Parser, Debug)]
 #[command(name = "scanrig", version, about = "Drive a 3D scanner rig and reconstruct what it sees")]
@@ -69,6 +70,70 @@ enum Command {
         #[arg(long)]
         rig: PathBuf,
     },
+    /// Daemon: rig, device and scan status.
+    Status(DaemonArgs),
+    /// Daemon: start a scan (defaults from the daemon's rig file).
+    Start {
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        /// Turntable positions.
+        #[arg(long)]
+        positions: Option<u32>,
+        /// Follow its progress until it ends.
+        #[arg(long)]
+        watch: bool,
+    },
+    /// Daemon: follow the running scan's progress until it ends.
+    Watch(DaemonArgs),
+    /// Daemon: pause a running scan at the next step.
+    Pause {
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        /// Scan id.
+        id: String,
+    },
+    /// Daemon: resume a paused or interrupted scan from its last complete frame.
+    Resume {
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        /// Scan id.
+        id: String,
+    },
+    /// Daemon: cancel a scan.
+    Cancel {
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        /// Scan id.
+        id: String,
+    },
+    /// Daemon: download a scan's results (models and report) into a directory.
+    Fetch {
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        /// Scan id.
+        id: String,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+/// Where the daemon is.
+#[derive(clap::Args, Debug)]
+struct DaemonArgs {
+    /// Daemon address, host:port.
+    #[arg(long, default_value = "127.0.0.1:8470")]
+    daemon: String,
+    /// Bearer token, when the daemon needs one (else the SCANRIG_TOKEN environment variable).
+    #[arg(long)]
+    token: Option<String>,
+}
+
+impl DaemonArgs {
+    fn client(&self) -> anyhow::Result<Client> {
+        let token = self.token.clone().or_else(|| std::env::var("SCANRIG_TOKEN").ok().filter(|t| !t.is_empty()));
+        Ok(Client::new(&self.daemon, token)?)
+    }
 }
 
 fn main() -> ExitCode {
@@ -147,6 +212,35 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             println!("results in {}", out.display());
             Ok(())
         }
+        Command::Status(d) => {
+            let v = d.client()?.get_json("/api/v1/status")?;
+            println!("{}", serde_json::to_string_pretty(&v)?);
+            Ok(())
+        }
+        Command::Start { daemon, positions, watch } => {
+            let c = daemon.client()?;
+            let mut body = serde_json::json!({});
+            if let Some(n) = positions {
+                body["positions"] = n.into();
+            }
+            let v = c.post_json("/api/v1/scans", &body)?;
+            println!("started {}", v["id"].as_str().unwrap_or("?"));
+            if watch {
+                watch_progress(&c)?;
+            }
+            Ok(())
+        }
+        Command::Watch(d) => watch_progress(&d.client()?),
+        Command::Pause { daemon, id } => scan_action(&daemon, &id, "pause"),
+        Command::Resume { daemon, id } => scan_action(&daemon, &id, "resume"),
+        Command::Cancel { daemon, id } => scan_action(&daemon, &id, "cancel"),
+        Command::Fetch { daemon, id, out } => {
+            let files = client::fetch_results(&daemon.client()?, &id, &out)?;
+            for f in files {
+                println!("{}", out.join(f).display());
+            }
+            Ok(())
+        }
         Command::Scan { rig, out } => {
             let config = scanrig::config::load(&rig)?;
             let total = config.scan.positions as u64;
@@ -172,6 +266,56 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
     }
+}
+
+fn scan_action(d: &DaemonArgs, id: &str, action: &str) -> anyhow::Result<()> {
+    d.client()?.post_json(&format!("/api/v1/scans/{id}/{action}"), &serde_json::json!({}))?;
+    println!("{action}: {id}");
+    Ok(())
+}
+
+/// Follow the event stream with a progress bar (a terminal) or lines, until the scan ends.
+fn watch_progress(c: &Client) -> anyhow::Result<()> {
+    let bar = std::io::stderr().is_terminal().then(|| {
+        let bar = indicatif::ProgressBar::new(0);
+        if let Ok(style) = indicatif::ProgressStyle::with_template("[{bar:40}] {pos}/{len} {msg}") {
+            bar.set_style(style.progress_chars("=> "));
+        }
+        bar
+    });
+    let mut last = String::new();
+    let mut outcome = String::new();
+    c.watch(|p| {
+        let status = p["status"].as_str().unwrap_or("");
+        let remaining = p["remaining_s"].as_f64().map_or(String::new(), |r| format!(", {r:.0} s left"));
+        let msg = format!("{}{remaining}", p["message"].as_str().unwrap_or(""));
+        match &bar {
+            Some(bar) => {
+                bar.set_length(p["total"].as_u64().unwrap_or(0));
+                bar.set_position(p["step"].as_u64().unwrap_or(0));
+                bar.set_message(msg);
+            }
+            None if msg != last => {
+                eprintln!("{}/{} {msg}", p["step"], p["total"]);
+                last = msg;
+            }
+            None => {}
+        }
+        if status != "running" && !status.is_empty() {
+            outcome = format!("{} {}", p["scan_id"].as_str().unwrap_or("?"), status);
+            return false;
+        }
+        status == "running" || p["scan_id"].is_string()
+    })?;
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
+    if outcome.is_empty() {
+        println!("no scan running");
+    } else {
+        println!("{outcome}");
+    }
+    Ok(())
 }
 
 /// A progress bar on a terminal, plain log lines otherwise.

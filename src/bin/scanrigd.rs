@@ -1,1 +1,81 @@
-fn main() {}
+//! `scanrigd`: the scanner daemon. Thin: parses arguments, sets up logging and signals, and calls
+//! [`scanrig::service::run`].
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Parser;
+
+#[derive(Parser, Debug)]
+#[command(name = "scanrigd", version, about = "The scanrig daemon: HTTP API over a 3D scanner rig")]
+struct Args {
+    /// The rig file (TOML).
+    #[arg(long, default_value = "/etc/scanrig/rig.toml")]
+    config: PathBuf,
+    /// Address to listen on. Anything but loopback needs a token.
+    #[arg(long, default_value = "127.0.0.1:8470")]
+    listen: SocketAddr,
+    /// Where scans are stored.
+    #[arg(long, default_value = "/var/lib/scanrig")]
+    state_dir: PathBuf,
+    /// File holding the bearer token (else the SCANRIGD_TOKEN environment variable).
+    #[arg(long)]
+    token_file: Option<PathBuf>,
+    /// Seconds allowed for shutdown (stop the scan, park the rig).
+    #[arg(long, default_value_t = 10.0)]
+    shutdown_deadline: f64,
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    let filter = tracing_subscriber::EnvFilter::try_from_env("SCANRIG_LOG")
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
+    match run(args) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(args: Args) -> anyhow::Result<()> {
+    let token = match &args.token_file {
+        Some(p) => {
+            Some(std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?.trim().to_owned())
+        }
+        None => std::env::var("SCANRIGD_TOKEN").ok().filter(|t| !t.is_empty()),
+    };
+    if !args.shutdown_deadline.is_finite() || args.shutdown_deadline <= 0.0 {
+        anyhow::bail!("--shutdown-deadline must be a positive number of seconds");
+    }
+    let opts = scanrig::service::Options {
+        config_path: args.config,
+        listen: args.listen,
+        state_dir: args.state_dir,
+        token,
+        shutdown_deadline: Duration::from_secs_f64(args.shutdown_deadline),
+    };
+    let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    runtime.block_on(async move {
+        use tokio::signal::unix::{signal, SignalKind};
+        let mut term = signal(SignalKind::terminate()).context("cannot install the SIGTERM handler")?;
+        let mut int = signal(SignalKind::interrupt()).context("cannot install the SIGINT handler")?;
+        let shutdown = async move {
+            tokio::select! {
+                _ = term.recv() => tracing::info!("SIGTERM"),
+                _ = int.recv() => tracing::info!("SIGINT"),
+            }
+        };
+        scanrig::service::run(opts, shutdown, |addr| {
+            // Tests and scripts read the bound address (port 0 picks one) from this line.
+            println!("scanrigd listening on {addr}");
+        })
+        .await
+        .context("scanrigd failed")
+    })
+}

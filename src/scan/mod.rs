@@ -12,13 +12,13 @@ use std::time::Instant;
 
 use crate::acquisition::{self, AcquisitionError, CancelToken, CapturedView, Progress};
 use crate::config::RigConfig;
-use crate::devices::{build_rig, DeviceError};
+use crate::devices::{build_rig, DeviceError, Rig};
 use crate::geometry::{CameraModel, VoxelGrid};
 use crate::pipeline::{
     extract_silhouette, CarveError, ExportError, Mask, MeshError, Occupancy, SilhouetteParams, SpaceCarver, View,
 };
 
-pub use output::OutputDir;
+pub use output::{FrameMeta, OutputDir};
 pub use report::{GroundTruth, Report, Timings};
 
 /// Why a scan failed. Frames captured before the failure stay in `frames/`; no `report.json` is
@@ -57,6 +57,15 @@ pub enum ScanError {
     /// The report could not be serialised.
     #[error("cannot serialise report.json")]
     EncodeReport(#[source] serde_json::Error),
+    /// A frame's metadata file of an interrupted scan cannot be read back.
+    #[error("cannot parse frame metadata {path}")]
+    FrameMeta {
+        /// The metadata file.
+        path: PathBuf,
+        /// The parser's error.
+        #[source]
+        source: serde_json::Error,
+    },
     /// Carving failed (an unusable grid or a view whose mask does not fit its camera).
     #[error("space carving failed")]
     Carve(#[source] CarveError),
@@ -100,6 +109,40 @@ pub fn run_scan(
     let started = Instant::now();
     let out = OutputDir::prepare(out)?;
     let mut rig = build_rig(config).map_err(ScanError::OpenDevices)?;
+    scan_into(&mut rig, config, &out, 0, started, cancel, events)
+}
+
+/// Scan with an already opened `rig` into `out`. With `resume`, the frames already in `out/frames`
+/// (positions 0..k with both `pos_NNN.png` and its `pos_NNN.json`) are reused and the acquisition
+/// starts at position k; without it, `out` is prepared afresh like [`run_scan`] does.
+pub fn run_scan_with_rig(
+    rig: &mut Rig,
+    config: &RigConfig,
+    out: &Path,
+    resume: bool,
+    cancel: &CancelToken,
+    events: &mut dyn FnMut(ScanEvent),
+) -> Result<Report, ScanError> {
+    let started = Instant::now();
+    let (out, first) = if resume {
+        let out = OutputDir::reopen(out)?;
+        let first = out.completed_frames(config.scan.positions as usize);
+        (out, first)
+    } else {
+        (OutputDir::prepare(out)?, 0)
+    };
+    scan_into(rig, config, &out, first, started, cancel, events)
+}
+
+fn scan_into(
+    rig: &mut Rig,
+    config: &RigConfig,
+    out: &OutputDir,
+    first: usize,
+    started: Instant,
+    cancel: &CancelToken,
+    events: &mut dyn FnMut(ScanEvent),
+) -> Result<Report, ScanError> {
     let sim = rig.sim.clone();
     let camera = config.camera.model();
     let recon = &config.reconstruction;
@@ -108,62 +151,72 @@ pub fn run_scan(
     let mut carver = SpaceCarver::new(grid).map_err(ScanError::Carve)?;
     let mut timings = Timings::default();
     let mut views: Vec<(CameraModel, Mask)> = Vec::with_capacity(config.scan.positions as usize);
+    let mut carve_one = |position: usize, angle_deg: f64, image: &image::RgbImage, timings: &mut Timings| {
+        let t = Instant::now();
+        let mask = extract_silhouette(image, &params);
+        timings.silhouette += t.elapsed().as_secs_f64();
+        let cam = camera.for_turntable_angle(angle_deg);
+        let t = Instant::now();
+        let stats = carver.add_view(&cam, &mask).map_err(ScanError::Carve)?;
+        timings.carve += t.elapsed().as_secs_f64();
+        views.push((cam, mask));
+        Ok::<ScanEvent, ScanError>(ScanEvent::ViewProcessed { position, occupied: stats.occupied })
+    };
+
+    // Frames of an interrupted run, in position order.
+    for position in 0..first {
+        let (meta, image) = out.read_frame(position)?;
+        events(carve_one(position, meta.angle_deg, &image, &mut timings)?);
+    }
 
     let (tx, rx) = mpsc::sync_channel::<CapturedView>(4);
     let (progress_tx, progress_rx) = mpsc::channel::<Progress>();
     let plan = config.scan.clone();
-    let acq_cancel = cancel.clone();
-    // The acquisition thread owns the devices for the whole sequence.
-    let acquisition = std::thread::Builder::new()
-        .name("acquisition".into())
-        .spawn(move || {
-            let t = Instant::now();
-            let result = acquisition::run_turntable_scan(&mut rig, &plan, &tx, &acq_cancel, &mut |p| {
-                let _ = progress_tx.send(p.clone());
-            });
-            (result, t.elapsed().as_secs_f64())
-        })
-        .map_err(|source| ScanError::OutputDir {
-            path: out.path().to_owned(),
-            what: "cannot start the acquisition thread",
-            source,
-        })?;
-
     let mut pipeline_error = None;
-    for view in rx.iter() {
-        for p in progress_rx.try_iter() {
-            events(ScanEvent::Acquisition(p));
-        }
-        if let Err(e) = out.write_frame(&view) {
-            pipeline_error = Some(e);
-            break;
-        }
-        let t = Instant::now();
-        let mask = extract_silhouette(&view.frame.image, &params);
-        timings.silhouette += t.elapsed().as_secs_f64();
-        let cam = camera.for_turntable_angle(view.angle_deg);
-        let t = Instant::now();
-        let stats = match carver.add_view(&cam, &mask) {
-            Ok(stats) => stats,
-            Err(e) => {
-                pipeline_error = Some(ScanError::Carve(e));
+    // The acquisition thread owns the devices for the whole sequence.
+    let (acq_result, capture_s) = std::thread::scope(|scope| {
+        let acquisition = std::thread::Builder::new()
+            .name("acquisition".into())
+            .spawn_scoped(scope, move || {
+                let t = Instant::now();
+                let result = acquisition::run_turntable_scan_from(rig, &plan, first, &tx, cancel, &mut |p| {
+                    let _ = progress_tx.send(p.clone());
+                });
+                (result, t.elapsed().as_secs_f64())
+            })
+            .map_err(|source| ScanError::OutputDir {
+                path: out.path().to_owned(),
+                what: "cannot start the acquisition thread",
+                source,
+            })?;
+        for view in rx.iter() {
+            for p in progress_rx.try_iter() {
+                events(ScanEvent::Acquisition(p));
+            }
+            if let Err(e) = out.write_frame(&view) {
+                pipeline_error = Some(e);
                 break;
             }
-        };
-        timings.carve += t.elapsed().as_secs_f64();
-        events(ScanEvent::ViewProcessed { position: view.position, occupied: stats.occupied });
-        views.push((cam, mask));
-    }
-    // Dropping the receiver makes a still-running acquisition stop with PipelineGone.
-    drop(rx);
-    let (acq_result, capture_s) = acquisition.join().map_err(|_| ScanError::AcquisitionPanicked)?;
+            match carve_one(view.position, view.angle_deg, &view.frame.image, &mut timings) {
+                Ok(e) => events(e),
+                Err(e) => {
+                    pipeline_error = Some(e);
+                    break;
+                }
+            }
+        }
+        // Dropping the receiver makes a still-running acquisition stop with PipelineGone.
+        drop(rx);
+        acquisition.join().map_err(|_| ScanError::AcquisitionPanicked)
+    })?;
     for p in progress_rx.try_iter() {
         events(ScanEvent::Acquisition(p));
     }
     if let Some(e) = pipeline_error {
         return Err(e);
     }
-    let summary = acq_result.map_err(ScanError::Acquisition)?;
+    let mut summary = acq_result.map_err(ScanError::Acquisition)?;
+    summary.views += first;
     timings.capture = capture_s;
 
     let truth = sim.as_ref().map(|world| {

@@ -2,6 +2,7 @@
 //!
 //! ```text
 //! DIR/frames/pos_000.png ...   captured frames (scans only), written as they arrive
+//! DIR/frames/pos_000.json ...  how each frame was taken (angle, lights, sequence), written after it
 //! DIR/model.ply                binary PLY triangle mesh
 //! DIR/model.stl                binary STL
 //! DIR/model.obj                OBJ
@@ -19,6 +20,21 @@ use super::{ScanError, ScanEvent};
 use crate::acquisition::{AcquisitionSummary, CapturedView};
 use crate::pipeline::export::{self, write_atomic};
 use crate::pipeline::{extract_surface, reprojection_iou, MeshParams, Occupancy, View};
+
+/// What `frames/pos_NNN.json` records about how frame NNN was taken.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FrameMeta {
+    /// 0-based position in the plan.
+    pub position: usize,
+    /// Turntable angle reported when the frame was taken, degrees.
+    pub angle_deg: f64,
+    /// Lights that were on, by index.
+    pub lights_on: Vec<usize>,
+    /// The camera's sequence number of the frame.
+    pub sequence: u64,
+    /// Stale frames discarded before it.
+    pub stale_discarded: u32,
+}
 
 /// A prepared output directory.
 #[derive(Debug)]
@@ -76,12 +92,52 @@ impl OutputDir {
                 let entry = entry.map_err(err("cannot list frames/"))?;
                 let name = entry.file_name();
                 let name = name.to_string_lossy();
-                if name.starts_with("pos_") && name.ends_with(".png") {
+                if name.starts_with("pos_") && (name.ends_with(".png") || name.ends_with(".json")) {
                     std::fs::remove_file(entry.path()).map_err(err("cannot remove a previous frame"))?;
                 }
             }
         }
         Ok(OutputDir { path: path.to_owned() })
+    }
+
+    /// Open the directory of an interrupted scan to resume it: keeps its frames, removes a
+    /// `report.json` (there should be none) so the directory is not taken as finished.
+    pub fn reopen(path: &Path) -> Result<OutputDir, ScanError> {
+        let err = |what: &'static str| move |source| ScanError::OutputDir { path: path.to_owned(), what, source };
+        std::fs::create_dir_all(path).map_err(err("cannot create it"))?;
+        match std::fs::remove_file(path.join("report.json")) {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) => return Err(err("cannot remove the previous report.json")(e)),
+        }
+        Ok(OutputDir { path: path.to_owned() })
+    }
+
+    /// How many leading positions (0, 1, ... k-1, at most `total`) have a complete frame on disk: the
+    /// PNG and its metadata file, which is written after the PNG.
+    pub fn completed_frames(&self, total: usize) -> usize {
+        let dir = self.path.join("frames");
+        (0..total)
+            .take_while(|&i| {
+                dir.join(format!("pos_{i:03}.png")).is_file() && dir.join(format!("pos_{i:03}.json")).is_file()
+            })
+            .count()
+    }
+
+    /// Read back frame `position` and its metadata.
+    pub fn read_frame(&self, position: usize) -> Result<(FrameMeta, image::RgbImage), ScanError> {
+        let dir = self.path.join("frames");
+        let meta_path = dir.join(format!("pos_{position:03}.json"));
+        let bytes = std::fs::read(&meta_path).map_err(|source| ScanError::OutputDir {
+            path: meta_path.clone(),
+            what: "cannot read frame metadata",
+            source,
+        })?;
+        let meta: FrameMeta = serde_json::from_slice(&bytes)
+            .map_err(|source| ScanError::FrameMeta { path: meta_path.clone(), source })?;
+        let png = dir.join(format!("pos_{position:03}.png"));
+        let image = image::open(&png).map_err(|source| ScanError::EncodeFrame { path: png.clone(), source })?.to_rgb8();
+        Ok((meta, image))
     }
 
     /// The directory.
@@ -103,7 +159,17 @@ impl OutputDir {
             .image
             .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
             .map_err(|source| ScanError::EncodeFrame { path: file.clone(), source })?;
-        write_atomic(&file, &png).map_err(ScanError::Export)
+        write_atomic(&file, &png).map_err(ScanError::Export)?;
+        // The metadata goes last: a position is complete on disk iff its JSON exists.
+        let meta = FrameMeta {
+            position: view.position,
+            angle_deg: view.angle_deg,
+            lights_on: view.lights_on.clone(),
+            sequence: view.frame.sequence,
+            stale_discarded: view.stale_discarded,
+        };
+        let json = serde_json::to_vec_pretty(&meta).map_err(ScanError::EncodeReport)?;
+        write_atomic(&dir.join(format!("pos_{:03}.json", view.position)), &json).map_err(ScanError::Export)
     }
 
     /// Mesh, export, evaluate, and write `report.json` last.

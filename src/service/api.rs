@@ -1,0 +1,308 @@
+//! The HTTP API, versioned under `/api/v1`, plus `/metrics` and the web page at `/`.
+//!
+//! Errors are JSON: `{"error": {"code": "...", "message": "..."}}` with a 4xx/5xx status. When the
+//! daemon has a token, every route needs `Authorization: Bearer <token>`.
+
+use std::convert::Infallible;
+use std::sync::{Arc, RwLock};
+use std::time::{Duration, Instant};
+
+use axum::extract::rejection::JsonRejection;
+use axum::extract::{DefaultBodyLimit, Path, Request, State};
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::middleware::Next;
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use futures_util::{Stream, StreamExt};
+use serde_json::json;
+use tokio_util::sync::CancellationToken;
+
+use super::jobs::{JobError, Jobs, StartRequest};
+use super::metrics::Metrics;
+use super::rig::{error_chain, RigError, RigHandle};
+use super::store::{valid_id, StoreError};
+use crate::config::RigConfig;
+
+/// Largest request body accepted, bytes.
+pub const MAX_BODY: usize = 16 * 1024;
+
+/// What the handlers share.
+#[derive(Debug, Clone)]
+pub struct AppState {
+    /// The configuration in force (replaced on reload).
+    pub config: Arc<RwLock<Arc<RigConfig>>>,
+    /// The device thread.
+    pub rig: RigHandle,
+    /// Scan jobs.
+    pub jobs: Jobs,
+    /// Counters.
+    pub metrics: Arc<Metrics>,
+    /// Bearer token required on every request, if set.
+    pub token: Option<Arc<str>>,
+    /// Cancelled at shutdown: ends event streams.
+    pub shutdown: CancellationToken,
+    /// When the daemon started.
+    pub started: Instant,
+}
+
+impl AppState {
+    fn config(&self) -> Arc<RigConfig> {
+        self.config.read().map(|c| c.clone()).unwrap_or_else(|p| p.into_inner().clone())
+    }
+}
+
+/// A JSON error response.
+#[derive(Debug)]
+pub struct ApiError {
+    status: StatusCode,
+    code: &'static str,
+    message: String,
+}
+
+impl ApiError {
+    fn new(status: StatusCode, code: &'static str, message: impl Into<String>) -> Self {
+        ApiError { status, code, message: message.into() }
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        (self.status, Json(json!({"error": {"code": self.code, "message": self.message}}))).into_response()
+    }
+}
+
+impl From<JobError> for ApiError {
+    fn from(e: JobError) -> Self {
+        let msg = error_chain(&e);
+        match e {
+            JobError::Busy(_) => ApiError::new(StatusCode::CONFLICT, "busy", msg),
+            JobError::Invalid { .. } => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "invalid_request", msg),
+            JobError::WrongState { .. } => ApiError::new(StatusCode::CONFLICT, "wrong_state", msg),
+            JobError::Store(StoreError::NotFound(_)) => ApiError::new(StatusCode::NOT_FOUND, "not_found", msg),
+            JobError::Store(_) => ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "store", msg),
+        }
+    }
+}
+
+impl From<StoreError> for ApiError {
+    fn from(e: StoreError) -> Self {
+        JobError::Store(e).into()
+    }
+}
+
+impl From<JsonRejection> for ApiError {
+    fn from(e: JsonRejection) -> Self {
+        let code = if e.status() == StatusCode::PAYLOAD_TOO_LARGE { "too_large" } else { "bad_request" };
+        ApiError::new(e.status(), code, e.body_text())
+    }
+}
+
+/// The router over `state`.
+pub fn router(state: AppState) -> Router {
+    let api = Router::new()
+        .route("/status", get(status))
+        .route("/devices", get(devices))
+        .route("/scans", get(list_scans).post(start_scan))
+        .route("/scans/{id}", get(get_scan))
+        .route("/scans/{id}/pause", post(pause_scan))
+        .route("/scans/{id}/resume", post(resume_scan))
+        .route("/scans/{id}/cancel", post(cancel_scan))
+        .route("/scans/{id}/files/{*path}", get(scan_file))
+        .route("/events", get(events))
+        .route("/preview", get(preview));
+    Router::new()
+        .nest("/api/v1", api)
+        .route("/metrics", get(metrics))
+        .route("/", get(page))
+        .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "not_found", "no such route") })
+        .layer(axum::middleware::from_fn_with_state(state.clone(), guard))
+        .layer(DefaultBodyLimit::max(MAX_BODY))
+        .with_state(state)
+}
+
+/// Counts requests and checks the bearer token.
+async fn guard(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    state.metrics.http_requests.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    if let Some(token) = &state.token {
+        let given = req
+            .headers()
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "));
+        if !given.is_some_and(|g| constant_time_eq(g.as_bytes(), token.as_bytes())) {
+            return ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "a valid bearer token is required")
+                .into_response();
+        }
+    }
+    next.run(req).await
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+async fn status(State(s): State<AppState>) -> Json<serde_json::Value> {
+    let config = s.config();
+    Json(json!({
+        "version": env!("CARGO_PKG_VERSION"),
+        "rig": config.rig.name,
+        "uptime_s": s.started.elapsed().as_secs_f64(),
+        "devices": s.rig.status(),
+        "running": s.jobs.running(),
+        "progress": s.jobs.progress(),
+        "defaults": {
+            "method": config.reconstruction.method.name(),
+            "positions": config.scan.positions,
+            "lights": config.scan.lights,
+        },
+    }))
+}
+
+async fn devices(State(s): State<AppState>) -> Json<serde_json::Value> {
+    Json(json!({ "devices": s.rig.status() }))
+}
+
+async fn list_scans(State(s): State<AppState>) -> Result<Json<serde_json::Value>, ApiError> {
+    Ok(Json(json!({ "scans": s.jobs.store().list()? })))
+}
+
+async fn start_scan(
+    State(s): State<AppState>,
+    body: Result<Json<StartRequest>, JsonRejection>,
+) -> Result<(StatusCode, Json<serde_json::Value>), ApiError> {
+    let Json(req) = body?;
+    let meta = s.jobs.start(&s.config(), req)?;
+    Ok((StatusCode::ACCEPTED, Json(json!(meta))))
+}
+
+fn check_id(id: &str) -> Result<(), ApiError> {
+    if valid_id(id) {
+        Ok(())
+    } else {
+        Err(ApiError::new(StatusCode::BAD_REQUEST, "bad_request", "malformed scan id"))
+    }
+}
+
+async fn get_scan(State(s): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, ApiError> {
+    check_id(&id)?;
+    let meta = s.jobs.store().get(&id)?;
+    let dir = s.jobs.store().dir(&id);
+    let report: Option<serde_json::Value> =
+        std::fs::read(dir.join("report.json")).ok().and_then(|b| serde_json::from_slice(&b).ok());
+    let frames = std::fs::read_dir(dir.join("frames"))
+        .map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".png")).count())
+        .unwrap_or(0);
+    Ok(Json(json!({ "scan": meta, "frames": frames, "report": report })))
+}
+
+async fn pause_scan(State(s): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, ApiError> {
+    check_id(&id)?;
+    s.jobs.pause(&id)?;
+    Ok(Json(json!({ "id": id, "requested": "pause" })))
+}
+
+async fn resume_scan(
+    State(s): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<(StatusCode, Json<serde_json::Value>), ApiError> {
+    check_id(&id)?;
+    let meta = s.jobs.resume(&s.config(), &id)?;
+    Ok((StatusCode::ACCEPTED, Json(json!(meta))))
+}
+
+async fn cancel_scan(State(s): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, ApiError> {
+    check_id(&id)?;
+    s.jobs.cancel(&id)?;
+    Ok(Json(json!({ "id": id, "requested": "cancel" })))
+}
+
+/// Serves `model.ply|stl|obj`, `voxels.ply`, `report.json`, `meta.json` and `frames/pos_NNN.png|json`.
+async fn scan_file(State(s): State<AppState>, Path((id, path)): Path<(String, String)>) -> Result<Response, ApiError> {
+    check_id(&id)?;
+    let allowed = match path.split_once('/') {
+        None => matches!(
+            path.as_str(),
+            "model.ply" | "model.stl" | "model.obj" | "voxels.ply" | "report.json" | "meta.json"
+        ),
+        Some(("frames", name)) => {
+            name.starts_with("pos_")
+                && (name.ends_with(".png") || name.ends_with(".json"))
+                && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'.')
+                && !name.contains("..")
+        }
+        Some(_) => false,
+    };
+    if !allowed {
+        return Err(ApiError::new(StatusCode::NOT_FOUND, "not_found", format!("no file `{path}` in a scan")));
+    }
+    s.jobs.store().get(&id)?;
+    let file = s.jobs.store().dir(&id).join(&path);
+    let bytes = tokio::fs::read(&file)
+        .await
+        .map_err(|_| ApiError::new(StatusCode::NOT_FOUND, "not_found", format!("scan {id} has no {path} (yet)")))?;
+    let mime = match path.rsplit('.').next() {
+        Some("png") => "image/png",
+        Some("json") => "application/json",
+        Some("obj") => "text/plain; charset=utf-8",
+        Some("stl") => "model/stl",
+        _ => "application/octet-stream",
+    };
+    Ok(([(header::CONTENT_TYPE, HeaderValue::from_static(mime))], bytes).into_response())
+}
+
+async fn events(State(s): State<AppState>) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
+    let rx = s.jobs.subscribe();
+    let first = futures_util::stream::once({
+        let p = s.jobs.progress();
+        async move { Ok(Event::default().event("progress").json_data(&p).unwrap_or_default()) }
+    });
+    let updates = futures_util::stream::unfold(rx, |mut rx| async move {
+        rx.changed().await.ok()?;
+        let p = rx.borrow_and_update().clone();
+        Some((Ok(Event::default().event("progress").json_data(&p).unwrap_or_default()), rx))
+    });
+    let stream = first.chain(updates).take_until(s.shutdown.clone().cancelled_owned());
+    Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(10)))
+}
+
+async fn preview(State(s): State<AppState>) -> Result<Response, ApiError> {
+    // While a scan runs the device thread is busy: serve its latest stored frame instead.
+    if let Some(id) = s.jobs.running() {
+        let dir = s.jobs.store().dir(&id).join("frames");
+        let latest = std::fs::read_dir(&dir).ok().and_then(|d| {
+            d.flatten()
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .filter(|n| n.starts_with("pos_") && n.ends_with(".png"))
+                .max()
+        });
+        return match latest {
+            Some(name) => {
+                let bytes = tokio::fs::read(dir.join(name))
+                    .await
+                    .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "io", e.to_string()))?;
+                Ok(([(header::CONTENT_TYPE, "image/png")], bytes).into_response())
+            }
+            None => Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "busy", "no frame captured yet")),
+        };
+    }
+    match tokio::time::timeout(Duration::from_secs(10), s.rig.preview()).await {
+        Ok(Ok(png)) => Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response()),
+        Ok(Err(RigError::Busy)) => Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "busy", "the rig is busy")),
+        Ok(Err(e @ RigError::NotConnected)) => {
+            Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "disconnected", error_chain(&e)))
+        }
+        Ok(Err(e)) => Err(ApiError::new(StatusCode::BAD_GATEWAY, "device", error_chain(&e))),
+        Err(_) => Err(ApiError::new(StatusCode::GATEWAY_TIMEOUT, "timeout", "no preview frame in 10 s")),
+    }
+}
+
+async fn metrics(State(s): State<AppState>) -> Response {
+    let body = s.metrics.render(s.jobs.running().is_some());
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], body).into_response()
+}
+
+async fn page() -> Response {
+    ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], include_str!("../../web/index.html")).into_response()
+}

@@ -1,0 +1,193 @@
+//! The daemon: one supervisor running the HTTP API, the device thread, the scan jobs, config reload
+//! on SIGHUP and the systemd watchdog, all stopped by one cancellation token.
+//!
+//! [`run`] takes the shutdown future, so tests can stop it; the binary passes SIGTERM/SIGINT.
+//! On shutdown the running scan is stopped at its next step boundary and left `interrupted`
+//! (resumable), the hardware is parked (lights and lasers off, projector blank, turntable parked)
+//! and the process exits within [`Options::shutdown_deadline`].
+
+pub mod api;
+pub mod client;
+pub mod jobs;
+pub mod metrics;
+pub mod notify;
+pub mod rig;
+pub mod store;
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::{Arc, RwLock};
+use std::time::{Duration, Instant};
+
+use tokio_util::sync::CancellationToken;
+
+use crate::config::ConfigError;
+
+/// How the daemon runs.
+#[derive(Debug, Clone)]
+pub struct Options {
+    /// The rig file.
+    pub config_path: PathBuf,
+    /// Address to listen on (port 0 picks a free port).
+    pub listen: SocketAddr,
+    /// Where scans are stored.
+    pub state_dir: PathBuf,
+    /// Bearer token; required when `listen` is not a loopback address.
+    pub token: Option<String>,
+    /// How long shutdown may take (stop the scan, park the rig), seconds.
+    pub shutdown_deadline: Duration,
+}
+
+/// Why the daemon could not start or stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// The rig file is invalid.
+    #[error("cannot load the rig file")]
+    Config(#[source] ConfigError),
+    /// The scan store cannot be opened.
+    #[error("cannot open the scan store")]
+    Store(#[source] store::StoreError),
+    /// Listening on a non-loopback address without a token.
+    #[error("listening on {0} needs a bearer token (--token-file or SCANRIGD_TOKEN)")]
+    TokenRequired(SocketAddr),
+    /// The listener could not be bound.
+    #[error("cannot listen on {addr}")]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// The error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The device thread could not be started.
+    #[error("cannot start the device thread")]
+    Thread(#[source] std::io::Error),
+    /// The HTTP server failed.
+    #[error("the HTTP server failed")]
+    Serve(#[source] std::io::Error),
+    /// Shutdown took longer than the deadline.
+    #[error("shutdown did not finish within {0:?}")]
+    ShutdownDeadline(Duration),
+}
+
+/// Run the daemon until `shutdown` resolves. `on_listening` is called with the bound address once
+/// the API answers.
+pub async fn run(
+    opts: Options,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+    on_listening: impl FnOnce(SocketAddr),
+) -> Result<(), ServiceError> {
+    if !opts.listen.ip().is_loopback() && opts.token.is_none() {
+        return Err(ServiceError::TokenRequired(opts.listen));
+    }
+    let config = Arc::new(crate::config::load(&opts.config_path).map_err(ServiceError::Config)?);
+    let (store, interrupted) = store::ScanStore::open(&opts.state_dir).map_err(ServiceError::Store)?;
+    for id in &interrupted {
+        tracing::warn!(scan = %id, "scan was interrupted by a crash or power loss; it can be resumed");
+    }
+    let metrics = Arc::new(metrics::Metrics::default());
+    let (rig, rig_thread) = rig::RigHandle::spawn(config.clone(), metrics.clone()).map_err(ServiceError::Thread)?;
+    let jobs = jobs::Jobs::new(Arc::new(store), rig.clone(), metrics.clone());
+    let token = CancellationToken::new();
+    let state = api::AppState {
+        config: Arc::new(RwLock::new(config)),
+        rig,
+        jobs: jobs.clone(),
+        metrics,
+        token: opts.token.as_deref().map(Arc::from),
+        shutdown: token.clone(),
+        started: Instant::now(),
+    };
+    let listener = tokio::net::TcpListener::bind(opts.listen)
+        .await
+        .map_err(|source| ServiceError::Bind { addr: opts.listen, source })?;
+    let addr = listener.local_addr().map_err(|source| ServiceError::Bind { addr: opts.listen, source })?;
+    tracing::info!(%addr, "listening");
+
+    // Supervisor: the shutdown future, SIGHUP reload, the watchdog, the server.
+    let trigger = token.clone();
+    tokio::spawn(async move {
+        shutdown.await;
+        trigger.cancel();
+    });
+    let reload = tokio::spawn(reload_on_sighup(opts.config_path.clone(), state.clone(), token.clone()));
+    if let Some(every) = notify::watchdog_interval() {
+        let t = token.clone();
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval(every);
+            loop {
+                tokio::select! {
+                    _ = t.cancelled() => break,
+                    _ = tick.tick() => { let _ = notify::notify("WATCHDOG=1"); }
+                }
+            }
+        });
+    }
+    let server =
+        axum::serve(listener, api::router(state.clone())).with_graceful_shutdown(token.clone().cancelled_owned());
+    let server = tokio::spawn(async move { server.await });
+    on_listening(addr);
+    if let Err(e) = notify::notify("READY=1\nSTATUS=listening") {
+        tracing::warn!(error = %e, "cannot notify systemd");
+    }
+
+    token.cancelled().await;
+    tracing::info!("shutting down");
+    let _ = notify::notify("STOPPING=1");
+    let deadline = opts.shutdown_deadline;
+    let stopped = tokio::time::timeout(deadline, async {
+        jobs.shutdown();
+        // Wait for the scan to stop at its step boundary (it parks the rig itself).
+        while jobs.running().is_some() {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        reload.abort();
+        let served = server.await;
+        // Every handle gone: the device thread parks the hardware and exits.
+        drop(state);
+        drop(jobs);
+        let _ = tokio::task::spawn_blocking(move || rig_thread.join()).await;
+        served
+    })
+    .await;
+    match stopped {
+        Err(_) => Err(ServiceError::ShutdownDeadline(deadline)),
+        Ok(Ok(Ok(()))) => Ok(()),
+        Ok(Ok(Err(e))) => Err(ServiceError::Serve(e)),
+        Ok(Err(_)) => Err(ServiceError::Serve(std::io::Error::other("server task panicked"))),
+    }
+}
+
+/// On SIGHUP load the rig file again; keep the old config if the new one is invalid or a scan runs.
+async fn reload_on_sighup(path: PathBuf, state: api::AppState, token: CancellationToken) {
+    let Ok(mut hup) = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) else {
+        tracing::warn!("cannot install the SIGHUP handler; reload disabled");
+        return;
+    };
+    loop {
+        tokio::select! {
+            _ = token.cancelled() => return,
+            got = hup.recv() => if got.is_none() { return },
+        }
+        let _ = notify::notify("RELOADING=1");
+        match crate::config::load(&path) {
+            Err(e) => {
+                tracing::error!(error = %rig::error_chain(&e), "reload: the new rig file is invalid; keeping the old one")
+            }
+            Ok(_) if state.jobs.running().is_some() => {
+                tracing::warn!("reload: a scan is running; keeping the old config")
+            }
+            Ok(new) => {
+                let new = Arc::new(new);
+                if let Err(e) = state.rig.reload(new.clone()) {
+                    tracing::error!(error = %e, "reload: cannot reach the device thread");
+                } else if let Ok(mut c) = state.config.write() {
+                    *c = new;
+                    tracing::info!("reload: config reloaded");
+                }
+            }
+        }
+        let _ = notify::notify("READY=1");
+    }
+}

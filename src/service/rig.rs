@@ -1,0 +1,379 @@
+//! The device thread: owns the rig's drivers, reconnects them with capped backoff when they are
+//! missing, runs scans, captures preview frames and parks the hardware. Async code talks to it
+//! through a cloneable [`RigHandle`] (bounded channel, command + oneshot reply); the device state is
+//! published in a shared [`RigStatus`] that readers never block on the thread for.
+
+use std::path::PathBuf;
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use serde::Serialize;
+use tokio::sync::oneshot;
+
+use crate::acquisition::{self, CancelToken};
+use crate::config::RigConfig;
+use crate::devices::{build_rig, DeviceError, ErrorKind, Rig};
+use crate::scan::{self, Report, ScanError, ScanEvent};
+
+use super::metrics::Metrics;
+
+/// The connection state of a device.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DeviceState {
+    /// Open and answering.
+    Connected,
+    /// Gone; a reconnection attempt is scheduled.
+    Disconnected,
+    /// A reconnection attempt is under way.
+    Reconnecting,
+    /// Cannot work with this configuration; not retried until the config is reloaded.
+    Failed,
+}
+
+/// One device's published status.
+#[derive(Debug, Clone, Serialize)]
+pub struct DeviceStatus {
+    /// Config section name (`turntable`, `camera`, ...).
+    pub name: String,
+    /// Driver kind from the config (`sim`, ...).
+    pub kind: String,
+    /// State.
+    pub state: DeviceState,
+    /// The last error, if any.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_error: Option<String>,
+    /// Reconnections so far.
+    pub reconnects: u64,
+}
+
+/// Every device's status, shared between the device thread and readers.
+pub type RigStatus = Arc<Mutex<Vec<DeviceStatus>>>;
+
+/// Why a command to the device thread failed.
+#[derive(Debug, thiserror::Error)]
+pub enum RigError {
+    /// The thread is doing something else (a scan) and its queue is full.
+    #[error("the rig is busy")]
+    Busy,
+    /// The thread has stopped.
+    #[error("the device thread has stopped")]
+    Stopped,
+    /// The devices are not connected.
+    #[error("the rig is not connected")]
+    NotConnected,
+    /// A device failed.
+    #[error("device error")]
+    Device(#[source] DeviceError),
+    /// A preview frame could not be encoded.
+    #[error("cannot encode the preview frame")]
+    Encode(#[source] image::ImageError),
+    /// The scan failed.
+    #[error("scan failed")]
+    Scan(#[source] ScanError),
+}
+
+/// A scan for the device thread to run.
+pub struct ScanJob {
+    /// Output directory.
+    pub out: PathBuf,
+    /// Resume from the frames in `out`.
+    pub resume: bool,
+    /// The configuration to scan with (plan already adjusted by the request).
+    pub config: Arc<RigConfig>,
+    /// Stops the scan at the next step boundary.
+    pub cancel: CancelToken,
+    /// Progress sink, called on the device thread.
+    pub events: Box<dyn FnMut(ScanEvent) + Send>,
+}
+
+impl std::fmt::Debug for ScanJob {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ScanJob").field("out", &self.out).field("resume", &self.resume).finish_non_exhaustive()
+    }
+}
+
+enum Command {
+    Preview(oneshot::Sender<Result<Vec<u8>, RigError>>),
+    Scan(ScanJob, oneshot::Sender<Result<Report, RigError>>),
+    Park(oneshot::Sender<Result<(), RigError>>),
+    Reload(Arc<RigConfig>),
+}
+
+/// A cloneable handle to the device thread.
+#[derive(Debug, Clone)]
+pub struct RigHandle {
+    tx: SyncSender<Command>,
+    status: RigStatus,
+}
+
+impl std::fmt::Debug for Command {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Command::Preview(_) => "Preview",
+            Command::Scan(..) => "Scan",
+            Command::Park(_) => "Park",
+            Command::Reload(_) => "Reload",
+        })
+    }
+}
+
+/// Backoff between reconnection attempts: doubles from `RECONNECT_MIN` up to `RECONNECT_MAX`.
+const RECONNECT_MIN: Duration = Duration::from_millis(250);
+const RECONNECT_MAX: Duration = Duration::from_secs(8);
+
+impl RigHandle {
+    /// Start the device thread for `config`. It opens the devices at once and keeps retrying.
+    /// The thread parks the hardware and exits when every handle is dropped.
+    pub fn spawn(
+        config: Arc<RigConfig>,
+        metrics: Arc<Metrics>,
+    ) -> std::io::Result<(RigHandle, std::thread::JoinHandle<()>)> {
+        let (tx, rx) = mpsc::sync_channel(8);
+        let status: RigStatus = Arc::new(Mutex::new(device_list(&config, DeviceState::Reconnecting, None)));
+        let thread_status = status.clone();
+        let join = std::thread::Builder::new().name("devices".into()).spawn(move || {
+            DeviceThread { config, rig: None, status: thread_status, metrics, ever_connected: false }.run(rx)
+        })?;
+        Ok((RigHandle { tx, status }, join))
+    }
+
+    /// A copy of every device's status.
+    pub fn status(&self) -> Vec<DeviceStatus> {
+        self.status.lock().map(|s| s.clone()).unwrap_or_default()
+    }
+
+    fn send(&self, cmd: Command) -> Result<(), RigError> {
+        self.tx.try_send(cmd).map_err(|e| match e {
+            TrySendError::Full(_) => RigError::Busy,
+            TrySendError::Disconnected(_) => RigError::Stopped,
+        })
+    }
+
+    /// Capture one frame and return it as PNG.
+    pub async fn preview(&self) -> Result<Vec<u8>, RigError> {
+        let (tx, rx) = oneshot::channel();
+        self.send(Command::Preview(tx))?;
+        rx.await.map_err(|_| RigError::Stopped)?
+    }
+
+    /// Run a scan; resolves when it has finished.
+    pub async fn scan(&self, job: ScanJob) -> Result<Report, RigError> {
+        let (tx, rx) = oneshot::channel();
+        self.send(Command::Scan(job, tx))?;
+        rx.await.map_err(|_| RigError::Stopped)?
+    }
+
+    /// Lights and lasers off, projector blank, turntable parked.
+    pub async fn park(&self) -> Result<(), RigError> {
+        let (tx, rx) = oneshot::channel();
+        self.send(Command::Park(tx))?;
+        rx.await.map_err(|_| RigError::Stopped)?
+    }
+
+    /// Use a new configuration: the devices are closed and opened again from it.
+    pub fn reload(&self, config: Arc<RigConfig>) -> Result<(), RigError> {
+        self.send(Command::Reload(config))
+    }
+}
+
+fn device_list(config: &RigConfig, state: DeviceState, error: Option<String>) -> Vec<DeviceStatus> {
+    let mut names = vec![("turntable", kind_of(&config.turntable)), ("camera", kind_of(&config.camera))];
+    if let Some(l) = &config.lights {
+        names.push(("lights", kind_of(&l.kind)));
+    }
+    if let Some(p) = &config.projector {
+        names.push(("projector", kind_of(p)));
+    }
+    if let Some(d) = &config.depth_camera {
+        names.push(("depth_camera", kind_of(d)));
+    }
+    names
+        .into_iter()
+        .map(|(name, kind)| DeviceStatus {
+            name: name.to_owned(),
+            kind,
+            state,
+            last_error: error.clone(),
+            reconnects: 0,
+        })
+        .collect()
+}
+
+/// The driver kind of a config section, from its variant name (`Sim(..)` -> `sim`), so that new
+/// driver kinds need no change here.
+fn kind_of(section: &dyn std::fmt::Debug) -> String {
+    let text = format!("{section:?}");
+    text.split(|c: char| !c.is_ascii_alphanumeric()).next().unwrap_or("").to_ascii_lowercase()
+}
+
+struct DeviceThread {
+    config: Arc<RigConfig>,
+    rig: Option<Rig>,
+    status: RigStatus,
+    metrics: Arc<Metrics>,
+    ever_connected: bool,
+}
+
+impl DeviceThread {
+    fn run(mut self, rx: Receiver<Command>) {
+        let span = tracing::info_span!("devices", rig = %self.config.rig.name);
+        let _enter = span.enter();
+        let mut backoff = RECONNECT_MIN;
+        loop {
+            if self.rig.is_none() {
+                if self.connect() {
+                    backoff = RECONNECT_MIN;
+                } else {
+                    backoff = (backoff * 2).min(RECONNECT_MAX);
+                }
+            }
+            let wait = if self.rig.is_some() || self.failed() { Duration::from_secs(3600) } else { backoff };
+            match rx.recv_timeout(wait) {
+                Ok(cmd) => self.handle(cmd),
+                Err(RecvTimeoutError::Timeout) => {}
+                Err(RecvTimeoutError::Disconnected) => break,
+            }
+        }
+        if let Some(rig) = self.rig.as_mut() {
+            match acquisition::park(rig, &self.config.scan) {
+                Ok(()) => tracing::info!("rig parked"),
+                Err(e) => tracing::error!(error = %e, "parking on shutdown failed"),
+            }
+        }
+        tracing::info!("device thread stopped");
+    }
+
+    fn failed(&self) -> bool {
+        self.status.lock().map(|s| s.iter().any(|d| d.state == DeviceState::Failed)).unwrap_or(false)
+    }
+
+    fn set_all(&self, state: DeviceState, error: Option<String>) {
+        if let Ok(mut s) = self.status.lock() {
+            for d in s.iter_mut() {
+                d.state = state;
+                d.last_error.clone_from(&error);
+            }
+        }
+    }
+
+    fn connect(&mut self) -> bool {
+        self.set_all(DeviceState::Reconnecting, None);
+        match build_rig(&self.config) {
+            Ok(rig) => {
+                self.rig = Some(rig);
+                if self.ever_connected {
+                    self.metrics.reconnects.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    if let Ok(mut s) = self.status.lock() {
+                        s.iter_mut().for_each(|d| d.reconnects += 1);
+                    }
+                }
+                self.ever_connected = true;
+                self.set_all(DeviceState::Connected, None);
+                tracing::info!("devices connected");
+                true
+            }
+            Err(e) => {
+                self.device_error(&e);
+                false
+            }
+        }
+    }
+
+    /// Publish a device error and decide from its kind: reconnect or fail.
+    fn device_error(&mut self, e: &DeviceError) {
+        self.metrics.device_errors.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let message = error_chain(e);
+        match e.kind() {
+            ErrorKind::Disconnected | ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Hardware => {
+                tracing::warn!(error = %message, "devices disconnected");
+                self.rig = None;
+                self.set_all(DeviceState::Disconnected, Some(message));
+            }
+            ErrorKind::Busy => {
+                tracing::warn!(error = %message, "device busy");
+            }
+            ErrorKind::InvalidConfig | ErrorKind::Unsupported => {
+                tracing::error!(error = %message, "devices cannot be used with this config");
+                self.rig = None;
+                self.set_all(DeviceState::Failed, Some(message));
+            }
+        }
+    }
+
+    fn handle(&mut self, cmd: Command) {
+        match cmd {
+            Command::Preview(reply) => {
+                let result = self.preview();
+                let _ = reply.send(result);
+            }
+            Command::Park(reply) => {
+                let result = match self.rig.as_mut() {
+                    None => Err(RigError::NotConnected),
+                    Some(rig) => acquisition::park(rig, &self.config.scan).map_err(RigError::Device),
+                };
+                if let Err(RigError::Device(e)) = &result {
+                    self.device_error(e);
+                }
+                let _ = reply.send(result);
+            }
+            Command::Reload(config) => {
+                if let Some(rig) = self.rig.as_mut() {
+                    if let Err(e) = acquisition::park(rig, &self.config.scan) {
+                        tracing::warn!(error = %e, "parking before reload failed");
+                    }
+                }
+                self.rig = None;
+                self.status.lock().map(|mut s| *s = device_list(&config, DeviceState::Reconnecting, None)).ok();
+                self.config = config;
+            }
+            Command::Scan(job, reply) => {
+                let result = self.scan(job);
+                let _ = reply.send(result);
+            }
+        }
+    }
+
+    fn preview(&mut self) -> Result<Vec<u8>, RigError> {
+        let rig = self.rig.as_mut().ok_or(RigError::NotConnected)?;
+        let timeout = Duration::from_millis(self.config.scan.capture_timeout_ms);
+        match rig.camera.capture(timeout) {
+            Ok(frame) => {
+                let mut png = Vec::new();
+                frame
+                    .image
+                    .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+                    .map_err(RigError::Encode)?;
+                Ok(png)
+            }
+            Err(e) => {
+                self.device_error(&e);
+                Err(RigError::Device(e))
+            }
+        }
+    }
+
+    fn scan(&mut self, mut job: ScanJob) -> Result<Report, RigError> {
+        let rig = self.rig.as_mut().ok_or(RigError::NotConnected)?;
+        let span = tracing::info_span!("scan", out = %job.out.display(), resume = job.resume);
+        let _enter = span.enter();
+        let result = scan::run_scan_with_rig(rig, &job.config, &job.out, job.resume, &job.cancel, &mut *job.events);
+        if let Err(ScanError::Acquisition(crate::acquisition::AcquisitionError::Device { source, .. })) = &result {
+            self.device_error(source);
+        }
+        result.map_err(RigError::Scan)
+    }
+}
+
+/// An error and its sources, joined with `: `.
+pub fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut s = e.to_string();
+    let mut cur = e.source();
+    while let Some(c) = cur {
+        s.push_str(": ");
+        s.push_str(&c.to_string());
+        cur = c.source();
+    }
+    s
+}
