@@ -96,7 +96,8 @@ def main():
         ext[:3, :3] = r
         ext[:3, 3] = t
         params.extrinsic = ext
-        img = o3d.geometry.Image((mask * 255).astype(np.uint8))
+        # carve_silhouette reads the mask as 32-bit float (object > 0); an 8-bit image carves nothing.
+        img = o3d.geometry.Image(mask.astype(np.float32))
         views.append((img, params))
 
     extent = BOX_MAX - BOX_MIN
