@@ -48,7 +48,7 @@ pub struct ShadowParams {
 
 impl Default for ShadowParams {
     fn default() -> Self {
-        ShadowParams { shadow_ratio: 0.15, lit_ratio: 0.6, min_ambient: 45.0, saturation: 250, erode_px: 2 }
+        ShadowParams { shadow_ratio: 0.15, lit_ratio: 0.0, min_ambient: 45.0, saturation: 250, erode_px: 2 }
     }
 }
 
@@ -116,7 +116,8 @@ pub fn detect_shadows(ambient: &RgbImage, lit: &[&RgbImage], params: &ShadowPara
                 bits |= 1 << k;
             }
         }
-        *out = if saturated || s0 < params.min_ambient || dmax < params.lit_ratio * s0 { UNKNOWN } else { bits };
+        let unlit = params.lit_ratio > 0.0 && dmax < params.lit_ratio * s0;
+        *out = if saturated || s0 < params.min_ambient || unlit { UNKNOWN } else { bits };
     });
     let unknown = Mask::from_raw(w, h, raw.iter().map(|&b| (b & UNKNOWN != 0) as u8).collect())
         .unwrap_or_else(|_| Mask::from_fn(w, h, |_, _| true));
