@@ -4,6 +4,7 @@
 
 pub mod output;
 pub mod report;
+pub mod shadow;
 
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
@@ -18,7 +19,7 @@ use crate::pipeline::{
 };
 
 pub use output::OutputDir;
-pub use report::{GroundTruth, Report, Timings};
+pub use report::{GroundTruth, Report, Timings, VisualHull};
 
 /// Why a scan failed. Frames captured before the failure stay in `frames/`; no `report.json` is
 /// written, so a failed scan is never mistaken for a result.
@@ -65,6 +66,9 @@ pub enum ScanError {
     /// The acquisition thread died.
     #[error("the acquisition thread panicked")]
     AcquisitionPanicked,
+    /// Shadow detection or shadow carving failed.
+    #[error("shadow carving failed")]
+    Shadow(#[source] shadow::ShadowScanError),
 }
 
 /// What a running scan tells its caller.
@@ -96,6 +100,9 @@ pub fn run_scan(
     cancel: &CancelToken,
     events: &mut dyn FnMut(ScanEvent),
 ) -> Result<Report, ScanError> {
+    if config.reconstruction.method == crate::config::Method::ShadowCarving {
+        return shadow::run_shadow_scan(config, out, None, cancel, events);
+    }
     let started = Instant::now();
     let out = OutputDir::prepare(out)?;
     let mut rig = build_rig(config).map_err(ScanError::OpenDevices)?;
