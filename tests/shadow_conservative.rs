@@ -75,7 +75,11 @@ fn run_with(
                 world.set_light(l, if Some(l) == on { 1.0 } else { 0.0 }).expect("light");
             }
             seq += 1;
-            world.renderer().render_rgb(&rays, &world.snapshot(), FrameNoise { sigma: noise_sigma, seed: 7, sequence: seq })
+            world.renderer().render_rgb(
+                &rays,
+                &world.snapshot(),
+                FrameNoise { sigma: noise_sigma, seed: 7, sequence: seq },
+            )
         };
         let ambient = frame(None);
         let lit: Vec<_> = (0..lights.len()).map(|l| frame(Some(l))).collect();

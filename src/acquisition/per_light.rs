@@ -95,7 +95,10 @@ fn per_light_steps(
             }
             progress(&Progress { step: position, total, stage: Stage::Lighting });
             let lights = rig.lights.as_mut().ok_or_else(|| {
-                device("switching lights")(DeviceError::Unsupported { device: "lights".into(), operation: "switching lights (the rig has no light array)" })
+                device("switching lights")(DeviceError::Unsupported {
+                    device: "lights".into(),
+                    operation: "switching lights (the rig has no light array)",
+                })
             })?;
             for i in 0..lights.light_count() {
                 let level = if Some(i) == only { 1.0 } else { 0.0 };

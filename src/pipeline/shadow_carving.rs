@@ -148,7 +148,11 @@ pub fn carve_shadows(
     for (view, v) in views.iter().enumerate() {
         let (cw, ch) = (v.camera.width, v.camera.height);
         if (v.shadow.width(), v.shadow.height()) != (cw, ch) {
-            return Err(ShadowCarveError::MaskSize { view, mask: (v.shadow.width(), v.shadow.height()), camera: (cw, ch) });
+            return Err(ShadowCarveError::MaskSize {
+                view,
+                mask: (v.shadow.width(), v.shadow.height()),
+                camera: (cw, ch),
+            });
         }
         if !v.light_m.iter().all(|x| x.is_finite()) {
             return Err(ShadowCarveError::BadLight { view });
@@ -181,7 +185,8 @@ pub fn carve_shadows(
     stats.candidates = candidates.iter().map(|c| c.len() as u64).sum();
     // Camera centres and lights in voxel coordinates (voxel (i, j, k) spans [i, i+1) x ...).
     let to_vox = |p: &Vector3<f64>| -> [f64; 3] { std::array::from_fn(|a| (p[a] - grid.origin[a]) / grid.voxel_size) };
-    let targets: Vec<([f64; 3], [f64; 3])> = views.iter().map(|v| (to_vox(&v.camera.centre()), to_vox(&v.light_m))).collect();
+    let targets: Vec<([f64; 3], [f64; 3])> =
+        views.iter().map(|v| (to_vox(&v.camera.centre()), to_vox(&v.light_m))).collect();
 
     let mut remove = Vec::new();
     while stats.sweeps < params.max_sweeps {
@@ -259,7 +264,14 @@ fn segment_free(occ: &[u8], dims: [usize; 3], own: usize, start: &[f64; 3], end:
 /// visiting every voxel the segment passes through. Returns the first occupied voxel other than
 /// `own` and the parameter where the segment enters it. Outside the grid everything is empty; the
 /// segment starts inside the grid and, the grid being convex, never re-enters it once it has left.
-fn first_occupied(occ: &[u8], dims: [usize; 3], own: usize, start: &[f64; 3], end: &[f64; 3], t0: f64) -> Option<(usize, f64)> {
+fn first_occupied(
+    occ: &[u8],
+    dims: [usize; 3],
+    own: usize,
+    start: &[f64; 3],
+    end: &[f64; 3],
+    t0: f64,
+) -> Option<(usize, f64)> {
     let d: [f64; 3] = std::array::from_fn(|a| end[a] - start[a]);
     let p: [f64; 3] = std::array::from_fn(|a| start[a] + d[a] * t0);
     let mut cell: [i64; 3] = std::array::from_fn(|a| p[a].floor() as i64);

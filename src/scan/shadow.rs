@@ -215,10 +215,12 @@ pub fn run_shadow_scan(
     events(ScanEvent::Stage("shadow carving"));
     let t = Instant::now();
     let hull = carver.occupancy();
-    let carving: Vec<ShadowView<'_>> =
-        shadow_views.iter().map(|(camera, light_m, shadow)| ShadowView { camera: *camera, light_m: *light_m, shadow }).collect();
-    let (carved, stats) =
-        carve_shadows(hull, &carving, &ShadowCarveParams::default()).map_err(|e| shadow_err(ShadowScanError::Carve(e)))?;
+    let carving: Vec<ShadowView<'_>> = shadow_views
+        .iter()
+        .map(|(camera, light_m, shadow)| ShadowView { camera: *camera, light_m: *light_m, shadow })
+        .collect();
+    let (carved, stats) = carve_shadows(hull, &carving, &ShadowCarveParams::default())
+        .map_err(|e| shadow_err(ShadowScanError::Carve(e)))?;
     let carve_s = t.elapsed().as_secs_f64();
     timings.carve += carve_s;
     tracing::info!(removed = stats.removed, sweeps = stats.sweeps, seconds = carve_s, "shadow carving done");
