@@ -335,10 +335,11 @@ mod tests {
     #[test]
     fn traversal_finds_the_blocker_and_ignores_its_own_voxel() {
         let dims = [8, 8, 8];
+        let at = |i: usize, j: usize, k: usize| i + 8 * (j + 8 * k);
         let mut occ = vec![0u8; 512];
-        let own = 1 + 8 * (1 + 8 * 1);
+        let own = at(1, 1, 1);
         occ[own] = 1;
-        let wall = 5 + 8 * (1 + 8 * 1);
+        let wall = at(5, 1, 1);
         occ[wall] = 1;
         let start = [1.5, 1.5, 1.5];
         let hit = first_occupied(&occ, dims, own, &start, &[20.5, 1.5, 1.5], 0.0);
@@ -350,7 +351,7 @@ mod tests {
         // A diagonal segment passing through the corner-adjacent voxel is blocked by it.
         let mut occ2 = vec![0u8; 512];
         occ2[own] = 1;
-        let diag = 2 + 8 * (2 + 8 * 1);
+        let diag = at(2, 2, 1);
         occ2[diag] = 1;
         assert_eq!(first_occupied(&occ2, dims, own, &start, &[6.5, 6.5, 1.5], 0.0).map(|h| h.0), Some(diag));
     }
