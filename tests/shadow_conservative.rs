@@ -159,21 +159,3 @@ fn carving_stays_conservative_with_a_low_albedo_patch() {
     assert_eq!(o.truth_carved, 0, "shadow carving removed voxels of the object");
     assert!(o.iou > o.hull_iou);
 }
-
-#[test]
-#[ignore]
-fn experiment() {
-    let spec = std::env::var("SHADOW_EXP").unwrap_or_default();
-    let mut parts = spec.split(';');
-    let cam_el: f64 = parts.next().and_then(|x| x.parse().ok()).unwrap_or(50.0);
-    let lights: Vec<_> = parts
-        .map(|p| {
-            let v: Vec<f64> = p.split(',').filter_map(|x| x.parse().ok()).collect();
-            around(v[0], v[1], 0.5)
-        })
-        .collect();
-    let mut cam = camera();
-    cam.pose = Pose::look_at(around(-90.0, cam_el, 0.5), Vector3::new(0.0, 0.0, 0.035), Vector3::z());
-    let n: usize = std::env::var("SHADOW_N").ok().and_then(|x| x.parse().ok()).unwrap_or(12);
-    run_with(Scene::preset("cup", 1.0).expect("preset"), n, 64, 1.0, [0, 0, 0], cam, lights);
-}

@@ -112,3 +112,30 @@ fn more_views_and_lights_recover_more() {
     assert!(many.iou > few.iou + 0.01, "72x8 IoU {} vs 24x4 {}", many.iou, few.iou);
     assert!(many.excess_removed > few.excess_removed);
 }
+
+/// A shadow-carving rig naming no lights, or a light that does not exist, is refused before anything
+/// runs, with the offending key.
+#[test]
+fn bad_shadow_lights_are_refused() {
+    let cases = [
+        ("shadow_lights = [0, 1, 2, 3]", "shadow_lights = [0, 7]", "scan.shadow_lights.1"),
+        ("shadow_lights = [0, 1, 2, 3]", "shadow_lights = [1, 1]", "named twice"),
+        ("shadow_lights = [0, 1, 2, 3]", "shadow_lights = []", "scan.shadow_lights"),
+    ];
+    for (from, to, expect) in cases {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let rig = derived_rig(dir.path(), "config/rigs/shadow-carving.toml", &[(from, to)]);
+        let out = dir.path().join("out");
+        let output = Command::new(env!("CARGO_BIN_EXE_scanrig"))
+            .args(["scan", "--rig"])
+            .arg(&rig)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .expect("run scanrig");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{to}: accepted");
+        assert!(stderr.contains(expect), "{to}: stderr lacks `{expect}`: {stderr}");
+        assert!(!out.join("report.json").exists());
+    }
+}

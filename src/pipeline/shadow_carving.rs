@@ -168,20 +168,23 @@ pub fn carve_shadows(
     });
     let mut stats = ShadowCarveStats { initial: occupied.len() as u64, ..Default::default() };
 
-    // Candidates per view: occupied voxels whose centre projects into the view's shadow.
-    let mut candidates: Vec<Vec<Candidate>> = views
-        .iter()
-        .map(|v| {
+    // Candidates per view: occupied voxels whose centre projects into the view's shadow. Views that
+    // share a camera (one position under several lights) share the projection of the hull.
+    let mut candidates: Vec<Vec<Candidate>> = Vec::with_capacity(views.len());
+    let mut pixels: Vec<Option<(u32, u32)>> = Vec::new();
+    for (i, v) in views.iter().enumerate() {
+        if i == 0 || views[i - 1].camera != v.camera {
+            pixels = occupied.par_iter().map(|&idx| v.camera.pixel_of(&voxel_centre(&grid, idx as usize))).collect();
+        }
+        candidates.push(
             occupied
                 .par_iter()
-                .filter(|&&idx| {
-                    let p = voxel_centre(&grid, idx as usize);
-                    v.camera.pixel_of(&p).is_some_and(|(u, w)| v.shadow.get(u, w))
-                })
-                .map(|&voxel| Candidate { voxel, cam: Segment::UNTESTED, light: Segment::UNTESTED })
-                .collect()
-        })
-        .collect();
+                .zip(&pixels)
+                .filter(|(_, px)| px.is_some_and(|(u, w)| v.shadow.get(u, w)))
+                .map(|(&voxel, _)| Candidate { voxel, cam: Segment::UNTESTED, light: Segment::UNTESTED })
+                .collect(),
+        );
+    }
     stats.candidates = candidates.iter().map(|c| c.len() as u64).sum();
     // Camera centres and lights in voxel coordinates (voxel (i, j, k) spans [i, i+1) x ...).
     let to_vox = |p: &Vector3<f64>| -> [f64; 3] { std::array::from_fn(|a| (p[a] - grid.origin[a]) / grid.voxel_size) };
