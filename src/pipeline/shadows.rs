@@ -11,8 +11,12 @@
 //!
 //! - A pixel is **unknown** (never shadow, never used to carve) when any channel of any of its frames
 //!   is at or above `saturation` (specular highlights and clipped pixels: the ratio is meaningless),
-//!   when `s₀ < min_ambient` (too dark: low albedo, the ratio is noise), or when no light lights it
-//!   clearly, `max dₖ < lit_ratio · s₀` (the comparison across lights needs one that lights it).
+//!   when `s₀ < min_ambient` (too dark: low albedo, the ratio is noise), or, if `lit_ratio > 0`, when
+//!   no light lights it clearly, `max dₖ < lit_ratio · s₀`. The default `lit_ratio = 0` leaves that
+//!   last test off: the ambient frame is already a per-pixel reference for the albedo, so a pixel that
+//!   every light leaves dark (deep in a pit) is a shadow of every light, and those are the shadows that
+//!   carve pits. Set it above 0 on rigs whose ambient frame is too weak to serve as the reference,
+//!   so that a pixel counts only when some other light shows it lit (the comparison across lights).
 //! - A known pixel is **shadowed by light `k`** when `dₖ <= shadow_ratio · s₀`.
 //! - The shadow masks are then **eroded** by `erode_px` (a pixel stays shadow only if every pixel of
 //!   the `(2r+1)²` square around it is shadow). Erosion removes isolated noise pixels, pulls shadow
@@ -36,7 +40,8 @@ use super::silhouette::Mask;
 pub struct ShadowParams {
     /// A known pixel is shadowed by light `k` when `dₖ <= shadow_ratio · s₀` (dimensionless).
     pub shadow_ratio: f32,
-    /// A pixel is known only if some light adds at least `lit_ratio · s₀` (dimensionless).
+    /// If above 0, a pixel is known only if some light adds at least `lit_ratio · s₀`
+    /// (dimensionless); 0 turns that test off.
     pub lit_ratio: f32,
     /// A pixel is known only if its ambient `R + G + B` is at least this, 8-bit levels summed (0..765).
     pub min_ambient: f32,
@@ -214,6 +219,19 @@ mod tests {
             assert_eq!(maps.shadows[1].count(), 81, "level {level}");
             assert_eq!(maps.shadows[0].count(), 0, "level {level}");
         }
+    }
+
+    #[test]
+    fn dark_under_every_light_is_shadow_unless_a_lit_light_is_required() {
+        let ambient = flat(8, 8, [60, 60, 60]);
+        let a = flat(8, 8, [61, 60, 60]);
+        let b = flat(8, 8, [60, 60, 61]);
+        let p = ShadowParams { erode_px: 0, ..ShadowParams::default() };
+        let maps = detect_shadows(&ambient, &[&a, &b], &p).expect("same sizes");
+        assert_eq!((maps.shadows[0].count(), maps.shadows[1].count(), maps.unknown.count()), (64, 64, 0));
+        let p = ShadowParams { lit_ratio: 0.5, ..p };
+        let maps = detect_shadows(&ambient, &[&a, &b], &p).expect("same sizes");
+        assert_eq!((maps.shadows[0].count(), maps.shadows[1].count(), maps.unknown.count()), (0, 0, 64));
     }
 
     #[test]
