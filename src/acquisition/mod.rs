@@ -9,6 +9,10 @@ use std::sync::mpsc::SyncSender;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+mod per_light;
+
+pub use per_light::{run_per_light_scan, PerLightView};
+
 use crate::config::ScanPlan;
 use crate::devices::{DeviceError, Frame, Rig};
 

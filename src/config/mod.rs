@@ -334,6 +334,19 @@ impl RigConfig {
                 );
             }
         }
+        for (i, &l) in plan.shadow_lights.iter().enumerate() {
+            if l >= light_count {
+                bad(
+                    &format!("scan.shadow_lights.{i}"),
+                    format!("light {l} does not exist: the rig has {light_count} light(s)"),
+                );
+            } else if plan.shadow_lights[..i].contains(&l) {
+                bad(&format!("scan.shadow_lights.{i}"), format!("light {l} is named twice"));
+            }
+        }
+        if self.reconstruction.method == Method::ShadowCarving && plan.shadow_lights.is_empty() {
+            bad("scan.shadow_lights", "method \"shadow-carving\" needs at least one light here".into());
+        }
         if plan.capture_timeout_ms == 0 {
             bad("scan.capture_timeout_ms", "must be at least 1".into());
         }

@@ -470,6 +470,10 @@ pub struct ScanPlan {
     /// Lights switched on (full level) for each position's frame, by index.
     #[serde(default)]
     pub lights: Vec<usize>,
+    /// Shadow carving: the lights that cast the shadows, by index. At each position the rig takes one
+    /// ambient frame (all lights off) and one frame per light named here, with only that light on.
+    #[serde(default)]
+    pub shadow_lights: Vec<usize>,
     /// Wait after a move has finished before capturing, milliseconds (vibration settles).
     #[serde(default)]
     pub settle_ms: u64,
@@ -498,7 +502,7 @@ fn default_max_stale() -> u32 {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ReconstructionConfig {
-    /// Method: `"space-carving"`.
+    /// Method: `"space-carving"` or `"shadow-carving"`.
     pub method: Method,
     /// Working volume minimum corner, object frame, metres.
     pub bbox_min_m: [f64; 3],
@@ -527,6 +531,8 @@ impl ReconstructionConfig {
 pub enum Method {
     /// Visual hull by silhouette carving.
     SpaceCarving,
+    /// Visual hull, then shadow carving with the lights of `scan.shadow_lights`.
+    ShadowCarving,
 }
 
 impl Method {
@@ -534,6 +540,7 @@ impl Method {
     pub fn name(self) -> &'static str {
         match self {
             Method::SpaceCarving => "space-carving",
+            Method::ShadowCarving => "shadow-carving",
         }
     }
 }

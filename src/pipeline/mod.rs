@@ -4,14 +4,19 @@
 //! - [`silhouette`]: background-difference silhouettes with a disc closing.
 //! - [`occupancy`]: brick-compressed voxel occupancy, overlap measures.
 //! - [`space_carving`]: the visual hull, dense reference and hierarchical incremental carver.
+//! - [`shadows`], [`shadow_carving`], [`light_calibration`]: shadow detection, shadow carving, point
+//!   light positions from a calibration sphere.
 //! - [`mesh`]: watertight surface extraction from an occupancy.
 //! - [`coloring`]: per-vertex colours from calibrated images.
 //! - [`export`]: PLY / STL / OBJ writers, written atomically.
 
 pub mod coloring;
 pub mod export;
+pub mod light_calibration;
 pub mod mesh;
 pub mod occupancy;
+pub mod shadow_carving;
+pub mod shadows;
 pub mod silhouette;
 pub mod space_carving;
 
@@ -19,6 +24,8 @@ pub use coloring::{color_vertices, ColorView};
 pub use export::ExportError;
 pub use mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
+pub use shadow_carving::{carve_shadows, ShadowCarveError, ShadowCarveParams, ShadowCarveStats, ShadowView};
+pub use shadows::{detect_shadows, ShadowError, ShadowMaps, ShadowParams};
 pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
 pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
 

@@ -5,6 +5,7 @@
 pub mod output;
 pub mod reconstruct;
 pub mod report;
+pub mod shadow;
 
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
@@ -19,7 +20,7 @@ use crate::pipeline::{
 };
 
 pub use output::{FrameMeta, OutputDir};
-pub use report::{GroundTruth, Report, Timings};
+pub use report::{GroundTruth, Report, Timings, VisualHull};
 
 /// Why a scan failed. Frames captured before the failure stay in `frames/`; no `report.json` is
 /// written, so a failed scan is never mistaken for a result.
@@ -75,6 +76,9 @@ pub enum ScanError {
     /// The acquisition thread died.
     #[error("the acquisition thread panicked")]
     AcquisitionPanicked,
+    /// Shadow detection or shadow carving failed.
+    #[error("shadow carving failed")]
+    Shadow(#[source] shadow::ShadowScanError),
 }
 
 /// What a running scan tells its caller.
@@ -106,6 +110,9 @@ pub fn run_scan(
     cancel: &CancelToken,
     events: &mut dyn FnMut(ScanEvent),
 ) -> Result<Report, ScanError> {
+    if config.reconstruction.method == crate::config::Method::ShadowCarving {
+        return shadow::run_shadow_scan(config, out, None, cancel, events);
+    }
     let started = Instant::now();
     let out = OutputDir::prepare(out)?;
     let mut rig = build_rig(config).map_err(ScanError::OpenDevices)?;

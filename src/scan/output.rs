@@ -233,6 +233,8 @@ impl OutputDir {
             frames,
             ground_truth,
             files,
+            visual_hull: None,
+            shadow_carving: None,
         };
         let json = serde_json::to_vec_pretty(&report).map_err(ScanError::EncodeReport)?;
         write_atomic(&p("report.json"), &json).map_err(ScanError::Export)?;

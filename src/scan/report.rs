@@ -39,6 +39,27 @@ pub struct Report {
     pub ground_truth: Option<GroundTruth>,
     /// Files written, relative to the output directory.
     pub files: Vec<String>,
+    /// The visual hull a refining method (shadow carving) started from.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub visual_hull: Option<VisualHull>,
+    /// What shadow carving did (method `shadow-carving` only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub shadow_carving: Option<crate::scan::shadow::ShadowSummary>,
+}
+
+/// The visual hull before refinement, compared with the simulated scene where there is one.
+#[derive(Debug, Clone, Serialize)]
+pub struct VisualHull {
+    /// Intersection over union with the true voxels (simulated rigs only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub iou: Option<f64>,
+    /// Fraction of the true voxels inside the hull (simulated rigs only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub containment: Option<f64>,
+    /// Occupied voxels.
+    pub voxels: u64,
+    /// Volume, cubic metres.
+    pub volume_m3: f64,
 }
 
 /// Stage timings, seconds of wall-clock time. Stages overlap in a scan (the pipeline runs while the
