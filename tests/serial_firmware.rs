@@ -37,12 +37,21 @@ fn missing_tools() -> Option<String> {
     None
 }
 
+/// Build the firmware and the bridge once per test process: the tests run in parallel and must not
+/// write the same output files at the same time.
 fn build() -> PathBuf {
+    static BUILT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("firmware");
-    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("firmware-protocol/firmware");
-    let status =
-        Command::new("make").arg("-C").arg(&src).arg(format!("OUT={}", out.display())).status().expect("make runs");
-    assert!(status.success(), "building the firmware and the simavr bridge failed");
+    let ok = *BUILT.get_or_init(|| {
+        let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("firmware-protocol/firmware");
+        Command::new("make")
+            .arg("-C")
+            .arg(&src)
+            .arg(format!("OUT={}", out.display()))
+            .status()
+            .is_ok_and(|s| s.success())
+    });
+    assert!(ok, "building the firmware and the simavr bridge failed");
     out
 }
 
