@@ -50,9 +50,10 @@ fn minimal_rig_parses() {
 
 #[test]
 fn every_shipped_config_parses_and_validates() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+    // Everything under config/, and the example /etc/scanrig/ config shipped with the systemd unit.
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
     let mut files = Vec::new();
-    let mut stack = vec![root];
+    let mut stack = vec![manifest.join("config"), manifest.join("systemd")];
     while let Some(dir) = stack.pop() {
         for entry in std::fs::read_dir(&dir).expect("config dir readable") {
             let path = entry.expect("entry").path();
