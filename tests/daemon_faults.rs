@@ -10,7 +10,7 @@ use std::time::Duration;
 use daemon_common::{client, device_states, frames_on_disk, rig_from, spawn, wait_finished, wait_for};
 
 /// The serial rig, small: 8 positions, a coarse grid.
-fn small_serial_edits<'a>(extra_emulator: &'a str) -> Vec<(&'a str, &'a str)> {
+fn small_serial_edits(extra_emulator: &str) -> Vec<(&str, &str)> {
     vec![("positions = 24", "positions = 8"), ("resolution = 128", "resolution = 40"), ("lights = 4\n", extra_emulator)]
 }
 
