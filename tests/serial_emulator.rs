@@ -331,3 +331,30 @@ fn field_dialects_survive_garbage_before_replies() {
         assert_eq!(faults(&b).garbage_replies.load(Ordering::SeqCst), 0, "{dialect}: the garbage was sent");
     }
 }
+
+#[test]
+fn config_fault_knobs_unplug_once_and_replug_by_themselves() {
+    let cfg = controller_config("scanrig", "");
+    let text = "port = \"emulator:scanrig\"\nreply_timeout_ms = 300\nboot_ms = 300\nreconnect_max_ms = 200\n\
+                [emulator]\nspeed_deg_per_s = 3600\nboot_ms = 10\nunplug_at_move = 2\nreplug_after_ms = 400\n";
+    let knobs: ControllerConfig = toml::from_str(text).expect("knobs parse");
+    assert_eq!((knobs.emulator.unplug_at_move, knobs.emulator.replug_after_ms), (2, 400));
+    assert_eq!((cfg.emulator.unplug_at_move, cfg.emulator.replug_after_ms, cfg.emulator.reset_at_move), (0, 0, 0));
+    let hw = Arc::new(RecordingHardware::new());
+    let opened = open_controller(&knobs, Some(hw as Arc<dyn EmulatedHardware>)).expect("controller opens");
+    let mut table = SerialTurntable::new(opened.controller.clone(), false, 3200);
+    table.move_to(10.0, MOVE_TIMEOUT).expect("first move");
+    let unplugged_at = Instant::now();
+    let e = table.move_to(20.0, MOVE_TIMEOUT).expect_err("unplugged at the 2nd move");
+    assert_eq!(e.kind(), ErrorKind::Disconnected, "{e}");
+    // Still out well before replug_after_ms, back after it without anyone calling replug().
+    let early = Instant::now() + Duration::from_millis(100);
+    assert!(scanrig::devices::serial::controller::lock(&opened.controller).reconnect(early).is_err());
+    let deadline = Instant::now() + Duration::from_secs(3);
+    scanrig::devices::serial::controller::lock(&opened.controller).reconnect(deadline).expect("replugged by itself");
+    assert!(unplugged_at.elapsed() >= Duration::from_millis(400), "replugged too early: {:?}", unplugged_at.elapsed());
+    // The unplug happens once: later moves (the 3rd, 4th, ...) go through.
+    for deg in [30.0, 40.0, 50.0] {
+        table.move_to(deg, MOVE_TIMEOUT).expect("moves after the replug");
+    }
+}

@@ -159,6 +159,18 @@ pub struct EmulatorConfig {
     /// Emulated white lights (scanrig emulator).
     #[serde(default = "default_emulator_lights")]
     pub lights: u32,
+    /// Test and demo knob: the emulated board is unplugged when the N-th motion command arrives,
+    /// counted from 1 over the emulator's life (0 = never).
+    #[serde(default)]
+    pub unplug_at_move: u32,
+    /// Test and demo knob: an unplugged emulated board is plugged back in after this many
+    /// milliseconds (0 = it stays unplugged).
+    #[serde(default)]
+    pub replug_after_ms: u64,
+    /// Test and demo knob: the emulated board resets itself when the N-th motion command arrives
+    /// (0 = never).
+    #[serde(default)]
+    pub reset_at_move: u32,
 }
 
 impl Default for EmulatorConfig {
@@ -168,6 +180,9 @@ impl Default for EmulatorConfig {
             boot_ms: default_emulator_boot(),
             steps_per_turn: None,
             lights: default_emulator_lights(),
+            unplug_at_move: 0,
+            replug_after_ms: 0,
+            reset_at_move: 0,
         }
     }
 }

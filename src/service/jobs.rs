@@ -326,12 +326,14 @@ impl Jobs {
             Some(e) => tracing::warn!(scan = id, error = %e, "scan failed"),
             None => tracing::info!(scan = id, ?status, "scan finished"),
         }
+        // Record the status and free the slot under one lock, so that a client who sees the scan
+        // finished can start the next one at once (no 409 in between).
+        let mut active = self.active.lock().unwrap_or_else(|p| p.into_inner());
         if let Err(e) = self.store.set_status(id, status, error.clone()) {
             tracing::error!(scan = id, error = %error_chain(&e), "cannot record the scan's status");
         }
-        if let Ok(mut a) = self.active.lock() {
-            *a = None;
-        }
+        *active = None;
+        drop(active);
         self.progress.send_modify(|p| {
             p.status = Some(status);
             p.elapsed_s = started.elapsed().as_secs_f64();

@@ -13,6 +13,7 @@ use tokio::sync::oneshot;
 
 use crate::acquisition::{self, CancelToken};
 use crate::config::RigConfig;
+use crate::devices::serial::LinkState;
 use crate::devices::{build_rig, DeviceError, ErrorKind, Rig};
 use crate::scan::{self, Report, ScanError, ScanEvent};
 
@@ -134,7 +135,15 @@ impl RigHandle {
         let status: RigStatus = Arc::new(Mutex::new(device_list(&config, DeviceState::Reconnecting, None)));
         let thread_status = status.clone();
         let join = std::thread::Builder::new().name("devices".into()).spawn(move || {
-            DeviceThread { config, rig: None, status: thread_status, metrics, ever_connected: false }.run(rx)
+            DeviceThread {
+                config,
+                rig: None,
+                status: thread_status,
+                metrics,
+                ever_connected: false,
+                serial_ever_connected: false,
+            }
+            .run(rx)
         })?;
         Ok((RigHandle { tx, status }, join))
     }
@@ -214,6 +223,27 @@ struct DeviceThread {
     status: RigStatus,
     metrics: Arc<Metrics>,
     ever_connected: bool,
+    /// The serial board has answered at least once since the rig was built.
+    serial_ever_connected: bool,
+}
+
+/// The device a [`DeviceError`] is about (its config section name).
+fn device_of(e: &DeviceError) -> &str {
+    match e {
+        DeviceError::Disconnected { device, .. }
+        | DeviceError::Timeout { device, .. }
+        | DeviceError::Busy { device, .. }
+        | DeviceError::Protocol { device, .. }
+        | DeviceError::InvalidConfig { device, .. }
+        | DeviceError::Unsupported { device, .. }
+        | DeviceError::Hardware { device, .. }
+        | DeviceError::Io { device, .. } => device,
+    }
+}
+
+/// Names of the devices behind the serial board: those whose driver kind is `serial`.
+fn is_serial(d: &DeviceStatus) -> bool {
+    d.kind == "serial"
 }
 
 impl DeviceThread {
@@ -229,7 +259,14 @@ impl DeviceThread {
                     backoff = (backoff * 2).min(RECONNECT_MAX);
                 }
             }
-            let wait = if self.rig.is_some() || self.failed() { Duration::from_secs(3600) } else { backoff };
+            // With the rig open, a lost serial board is reconnected on its own (capped) backoff
+            // while the other devices stay in use.
+            let serial_wait = if self.rig.is_some() { self.poll_serial() } else { None };
+            let wait = if self.rig.is_some() || self.failed() {
+                serial_wait.unwrap_or(Duration::from_secs(3600))
+            } else {
+                backoff
+            };
             match rx.recv_timeout(wait) {
                 Ok(cmd) => self.handle(cmd),
                 Err(RecvTimeoutError::Timeout) => {}
@@ -249,6 +286,60 @@ impl DeviceThread {
         self.status.lock().map(|s| s.iter().any(|d| d.state == DeviceState::Failed)).unwrap_or(false)
     }
 
+    /// Publish `state` for the devices `which` selects.
+    fn set_where(&self, which: impl Fn(&DeviceStatus) -> bool, state: DeviceState, error: Option<String>) {
+        if let Ok(mut s) = self.status.lock() {
+            for d in s.iter_mut().filter(|d| which(d)) {
+                d.state = state;
+                d.last_error.clone_from(&error);
+            }
+        }
+    }
+
+    /// Check the serial board's link and, when it is down and its backoff allows, make one
+    /// reconnection attempt. Publishes the link state for the serial devices. Returns how long to
+    /// wait before the next attempt, or `None` when the board is connected (or there is none).
+    fn poll_serial(&mut self) -> Option<Duration> {
+        let controller = self.rig.as_ref()?.serial.as_ref()?.controller.clone();
+        let mut c = crate::devices::serial::controller::lock(&controller);
+        let now = std::time::Instant::now();
+        match c.state() {
+            LinkState::Connected => {
+                self.set_where(is_serial, DeviceState::Connected, None);
+                self.serial_ever_connected = true;
+                None
+            }
+            LinkState::Disconnected { retry_at, .. } if retry_at > now => Some(retry_at - now),
+            LinkState::Disconnected { .. } => {
+                self.set_where(is_serial, DeviceState::Reconnecting, None);
+                match c.reconnect(now) {
+                    Ok(()) => {
+                        if self.serial_ever_connected {
+                            self.metrics.reconnects.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            if let Ok(mut s) = self.status.lock() {
+                                s.iter_mut().filter(|d| is_serial(d)).for_each(|d| d.reconnects += 1);
+                            }
+                            tracing::info!("serial board reconnected");
+                        }
+                        self.serial_ever_connected = true;
+                        self.set_where(is_serial, DeviceState::Connected, None);
+                        None
+                    }
+                    Err(e) => {
+                        let message = error_chain(&e);
+                        tracing::debug!(error = %message, "serial board still unreachable");
+                        self.set_where(is_serial, DeviceState::Disconnected, Some(message));
+                        let next = match c.state() {
+                            LinkState::Disconnected { retry_at, .. } => retry_at.saturating_duration_since(now),
+                            LinkState::Connected => Duration::ZERO,
+                        };
+                        Some(next.max(Duration::from_millis(20)))
+                    }
+                }
+            }
+        }
+    }
+
     fn set_all(&self, state: DeviceState, error: Option<String>) {
         if let Ok(mut s) = self.status.lock() {
             for d in s.iter_mut() {
@@ -263,6 +354,7 @@ impl DeviceThread {
         match build_rig(&self.config) {
             Ok(rig) => {
                 self.rig = Some(rig);
+                self.serial_ever_connected = false;
                 if self.ever_connected {
                     self.metrics.reconnects.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     if let Ok(mut s) = self.status.lock() {
@@ -286,6 +378,13 @@ impl DeviceThread {
         self.metrics.device_errors.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let message = error_chain(e);
         match e.kind() {
+            ErrorKind::Disconnected | ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Hardware
+                if self.serial_device(device_of(e)) =>
+            {
+                // The board's controller reconnects by itself; the camera and the rest stay open.
+                tracing::warn!(device = device_of(e), error = %message, "serial board error");
+                self.set_where(is_serial, DeviceState::Disconnected, Some(message));
+            }
             ErrorKind::Disconnected | ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Hardware => {
                 tracing::warn!(error = %message, "devices disconnected");
                 self.rig = None;
@@ -300,6 +399,12 @@ impl DeviceThread {
                 self.set_all(DeviceState::Failed, Some(message));
             }
         }
+    }
+
+    /// Whether `name` is a device behind the serial board of the open rig.
+    fn serial_device(&self, name: &str) -> bool {
+        self.rig.as_ref().is_some_and(|r| r.serial.is_some())
+            && self.status.lock().map(|s| s.iter().any(|d| d.name == name && is_serial(d))).unwrap_or(false)
     }
 
     fn handle(&mut self, cmd: Command) {

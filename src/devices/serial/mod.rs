@@ -95,6 +95,11 @@ pub fn open_controller(
             let hw = hardware.unwrap_or_else(|| Arc::new(RecordingHardware::new()));
             let emu = Emulator::spawn(fw, settings, hw)
                 .map_err(|source| DeviceError::Io { device: "controller".into(), source })?;
+            // The test and demo fault knobs of `[controller.emulator]`.
+            let faults = emu.faults();
+            faults.unplug_at_move.store(c.emulator.unplug_at_move, std::sync::atomic::Ordering::SeqCst);
+            faults.replug_after_ms.store(c.emulator.replug_after_ms, std::sync::atomic::Ordering::SeqCst);
+            faults.reset_at_move.store(c.emulator.reset_at_move, std::sync::atomic::Ordering::SeqCst);
             (Box::new(emulator::EmulatorOpener::new(Arc::clone(&emu))), Some(emu))
         }
         other => (Box::new(port::SystemOpener::new(other, c.baud)), None),

@@ -11,7 +11,7 @@ mod fabscan;
 mod horus;
 mod scanrig;
 
-use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -104,6 +104,9 @@ pub struct Faults {
     pub unplug_at_move: AtomicU32,
     /// Unplugged: the port is gone and cannot be opened until [`Faults::replug`].
     pub unplugged: AtomicBool,
+    /// An unplugged board is plugged back in by itself after this many milliseconds (0 = it stays
+    /// unplugged until [`Faults::replug`]).
+    pub replug_after_ms: AtomicU64,
     /// Motion commands seen so far.
     pub moves_seen: AtomicU32,
 }
@@ -366,7 +369,19 @@ fn run(shared: Arc<Shared>, fw: EmulatedFirmware, settings: EmulatorSettings, hw
     let mut boot_until: Option<Instant> = None;
     let mut out = Outbox::default();
     let mut buf = [0u8; 256];
+    let mut unplugged_since: Option<Instant> = None;
     while !shared.shutdown.load(Ordering::SeqCst) {
+        if faults.unplugged.load(Ordering::SeqCst) {
+            let since = *unplugged_since.get_or_insert_with(Instant::now);
+            let after = faults.replug_after_ms.load(Ordering::SeqCst);
+            if after > 0 && since.elapsed() >= Duration::from_millis(after) {
+                tracing::debug!(after_ms = after, "emulated board plugged back in");
+                faults.replug();
+                unplugged_since = None;
+            }
+        } else {
+            unplugged_since = None;
+        }
         if let Some(m) = shared.incoming.lock().unwrap_or_else(|p| p.into_inner()).take() {
             // Opening the port resets the board, as the DTR line does on Arduino-class boards.
             master = Some(m);

@@ -1,0 +1,106 @@
+//! The `scanrig` client subcommands (status, start --watch, watch, pause, resume, cancel, fetch)
+//! against a real `scanrigd` on 127.0.0.1. Every command and wait is bounded.
+
+mod daemon_common;
+
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use daemon_common::{client, frames_on_disk, rig_from, scan_meta, spawn, wait_for};
+
+/// Run `scanrig args... --daemon addr`, killed after `limit`.
+fn cli(addr: &str, args: &[&str], limit: Duration) -> Output {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_scanrig"))
+        .args(args)
+        .args(["--daemon", addr])
+        .env_remove("SCANRIG_TOKEN")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn scanrig");
+    let t = Instant::now();
+    while child.try_wait().expect("wait").is_none() {
+        if t.elapsed() > limit {
+            let _ = child.kill();
+            panic!("scanrig {args:?} did not finish in {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.wait_with_output().expect("output")
+}
+
+fn ok(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "exit {:?}\nstdout: {}\nstderr: {}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+#[test]
+fn cli_status_start_watch_pause_resume_cancel_fetch() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rig = rig_from(
+        dir.path(),
+        "simulated.toml",
+        &[
+            ("positions = 24", "positions = 8"),
+            ("resolution = 128", "resolution = 40"),
+            ("settle_ms = 0", "settle_ms = 150"),
+        ],
+    );
+    let d = spawn(&rig, dir.path());
+    let c = client(&d);
+    let limit = Duration::from_secs(30);
+
+    // status: the daemon's JSON status.
+    let status: serde_json::Value = serde_json::from_str(&ok(&cli(&d.addr, &["status"], limit))).expect("status json");
+    assert_eq!(status["rig"], "simulated");
+    assert_eq!(status["defaults"]["positions"], 8);
+
+    // start --watch: follows the scan to its end.
+    let out = ok(&cli(&d.addr, &["start", "--positions", "4", "--watch"], limit));
+    let id = out.lines().find_map(|l| l.strip_prefix("started ")).expect("started line").trim().to_owned();
+    assert!(out.contains(&format!("{id} complete")), "{out}");
+    assert_eq!(scan_meta(&c, &id)["status"], "complete");
+    assert_eq!(scan_meta(&c, &id)["positions"], 4);
+
+    // fetch: the results land in --out.
+    let fetched = dir.path().join("fetched");
+    let out = ok(&cli(&d.addr, &["fetch", &id, "--out", fetched.to_str().expect("utf8")], limit));
+    assert!(out.contains("model.ply"), "{out}");
+    assert!(std::fs::read(fetched.join("model.ply")).expect("ply").starts_with(b"ply\n"));
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(fetched.join("report.json")).expect("report")).expect("json");
+    assert_eq!(report["views"], 4);
+
+    // start (no watch), pause, resume, cancel.
+    let out = ok(&cli(&d.addr, &["start"], limit));
+    let id = out.lines().find_map(|l| l.strip_prefix("started ")).expect("started line").trim().to_owned();
+    wait_for("a first frame", limit, || frames_on_disk(dir.path(), &id).len() >= 2);
+    ok(&cli(&d.addr, &["pause", &id], limit));
+    wait_for("paused", limit, || scan_meta(&c, &id)["status"] == "paused");
+    let kept = frames_on_disk(dir.path(), &id).len();
+    assert!(kept < 16, "paused after the end: {kept} files");
+    ok(&cli(&d.addr, &["resume", &id], limit));
+    assert_eq!(scan_meta(&c, &id)["resumes"], 1);
+    wait_for("running again", limit, || scan_meta(&c, &id)["status"] == "running");
+    ok(&cli(&d.addr, &["cancel", &id], limit));
+    wait_for("cancelled", limit, || scan_meta(&c, &id)["status"] == "cancelled");
+    assert!(frames_on_disk(dir.path(), &id).len() >= kept, "frames were lost");
+
+    // watch with nothing running reports the last scan's outcome and returns.
+    let out = ok(&cli(&d.addr, &["watch"], limit));
+    assert!(out.contains(&format!("{id} cancelled")), "{out}");
+
+    // Errors are reported with a non-zero exit: a scan that is not running, a daemon that is not there.
+    let out = cli(&d.addr, &["pause", &id], limit);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr).to_lowercase();
+    assert!(err.contains("wrong_state") && err.contains("cancelled"), "{err}");
+    let out = cli("127.0.0.1:9", &["status"], limit);
+    assert!(!out.status.success());
+}
