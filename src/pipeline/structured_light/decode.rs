@@ -163,15 +163,31 @@ impl ProjectorMap {
     }
 }
 
+/// Pixels per block whose reads are skipped once every pixel in it is invalid (one cache line of
+/// each 8-bit image row).
+const SKIP_BLOCK: usize = 64;
+
 /// Decodes one pattern/inverse pair group (columns or rows) of one camera row into `code`,
 /// marking weak bits in `bad`, then turns the codes into indices and `>= limit` into bad.
 #[inline]
 fn decode_axis(pairs: &[(&[u8], &[u8])], coding: Coding, wt: u8, limit: u32, code: &mut [u16], bad: &mut [u8]) {
     code.fill(0);
     for &(p, q) in pairs {
-        for (((c, b), &p), &q) in code.iter_mut().zip(bad.iter_mut()).zip(p).zip(q) {
-            *c = (*c << 1) | u16::from(p > q);
-            *b |= u8::from(p.abs_diff(q) < wt);
+        let blocks = code
+            .chunks_mut(SKIP_BLOCK)
+            .zip(bad.chunks_mut(SKIP_BLOCK))
+            .zip(p.chunks(SKIP_BLOCK))
+            .zip(q.chunks(SKIP_BLOCK));
+        for (((code, bad), p), q) in blocks {
+            // A block whose pixels are all already invalid is not read: unlit background and
+            // dark squares cost no memory traffic for the remaining pairs.
+            if bad.iter().all(|&b| b != 0) {
+                continue;
+            }
+            for (((c, b), &p), &q) in code.iter_mut().zip(bad.iter_mut()).zip(p).zip(q) {
+                *c = (*c << 1) | u16::from(p > q);
+                *b |= u8::from(p.abs_diff(q) < wt);
+            }
         }
     }
     if coding == Coding::Gray {
