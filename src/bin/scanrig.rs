@@ -64,6 +64,29 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Decode a Gray-code structured-light capture (a directory of the 2 * (column bits + row bits) + 2
+    /// images, sorted by name) into projector columns/rows per camera pixel: writes `columns.png` and
+    /// `rows.png` (16-bit, 65535 = not decoded) and `decode.json` (valid fraction, timing).
+    Decode {
+        /// Directory of the captured images.
+        #[arg(long)]
+        images: PathBuf,
+        /// Projector resolution WIDTHxHEIGHT, pixels.
+        #[arg(long, default_value = "1024x768")]
+        projector: String,
+        /// A pixel is lit when |white - black| exceeds this (grey levels).
+        #[arg(long, default_value_t = 40)]
+        black_threshold: u8,
+        /// Every bit needs |pattern - inverse| of at least this (grey levels).
+        #[arg(long, default_value_t = 5)]
+        white_threshold: u8,
+        /// Decode this many times and report the median time (the images are loaded once).
+        #[arg(long, default_value_t = 1)]
+        repeat: u32,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Check a rig file and report every problem in it.
     Validate {
         /// The rig file (TOML).
@@ -150,6 +173,69 @@ fn main() -> ExitCode {
     }
 }
 
+fn decode_capture(
+    images: &std::path::Path,
+    projector: &str,
+    bt: u8,
+    wt: u8,
+    repeat: u32,
+    out: &std::path::Path,
+) -> anyhow::Result<()> {
+    use scanrig::pipeline::structured_light as sl;
+    let (w, h) = projector
+        .split_once('x')
+        .and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)))
+        .ok_or_else(|| anyhow::anyhow!("--projector {projector}: expected WIDTHxHEIGHT"))?;
+    let patterns = sl::GrayCodePatterns::new(w, h)?;
+    let t0 = std::time::Instant::now();
+    let capture = sl::load_capture_dir(images, patterns.count())?;
+    let load_s = t0.elapsed().as_secs_f64();
+    let params = sl::DecodeParams { black_threshold: bt, white_threshold: wt };
+    let slices = capture.slices();
+    let mut map = sl::ProjectorMap::new();
+    let mut times = Vec::new();
+    let mut valid = 0;
+    for _ in 0..repeat.max(1) {
+        let t = std::time::Instant::now();
+        valid = sl::decode(&patterns, &slices, capture.width, capture.height, &params, &mut map)?;
+        times.push(t.elapsed().as_secs_f64());
+    }
+    times.sort_by(f64::total_cmp);
+    let decode_s = times[times.len() / 2];
+    let pixels = capture.width * capture.height;
+    let (pairs, within) = map.horizontal_consistency(2);
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    sl::save_map_png(&map, out)?;
+    let report = serde_json::json!({
+        "camera": [capture.width, capture.height],
+        "projector": [w, h],
+        "images": capture.paths.len(),
+        "black_threshold": bt,
+        "white_threshold": wt,
+        "valid_pixels": valid,
+        "valid_fraction": valid as f64 / pixels as f64,
+        "adjacent_valid_pairs": pairs,
+        "adjacent_within_2_columns_fraction": if pairs > 0 { within as f64 / pairs as f64 } else { 0.0 },
+        "load_s": load_s,
+        "decode_s_median": decode_s,
+        "repeats": times.len(),
+        "megapixels_per_s": pixels as f64 / decode_s / 1e6,
+    });
+    let json = out.join("decode.json");
+    std::fs::write(&json, serde_json::to_string_pretty(&report)? + "\n")
+        .with_context(|| format!("cannot write {}", json.display()))?;
+    println!(
+        "{}x{} camera, {:.2}% valid, {:.4}% of adjacent valid pixels within 2 columns, decode {:.2} ms ({:.0} Mpx/s)",
+        capture.width,
+        capture.height,
+        100.0 * valid as f64 / pixels as f64,
+        if pairs > 0 { 100.0 * within as f64 / pairs as f64 } else { 0.0 },
+        decode_s * 1e3,
+        pixels as f64 / decode_s / 1e6
+    );
+    Ok(())
+}
+
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Validate { rig } => {
@@ -211,6 +297,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             );
             println!("results in {}", out.display());
             Ok(())
+        }
+        Command::Decode { images, projector, black_threshold, white_threshold, repeat, out } => {
+            decode_capture(&images, &projector, black_threshold, white_threshold, repeat, &out)
         }
         Command::Status(d) => {
             let v = d.client()?.get_json("/api/v1/status")?;

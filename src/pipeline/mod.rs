@@ -9,6 +9,7 @@
 //! - [`mesh`]: watertight surface extraction from an occupancy.
 //! - [`coloring`]: per-vertex colours from calibrated images.
 //! - [`export`]: PLY / STL / OBJ writers, written atomically.
+//! - [`structured_light`]: Gray-code patterns and their per-pixel decoding.
 
 pub mod coloring;
 pub mod export;
@@ -19,6 +20,7 @@ pub mod shadow_carving;
 pub mod shadows;
 pub mod silhouette;
 pub mod space_carving;
+pub mod structured_light;
 
 pub use coloring::{color_vertices, ColorView};
 pub use export::ExportError;
