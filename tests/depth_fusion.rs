@@ -77,3 +77,29 @@ fn shipped_rig_fuses_the_cup_within_one_percent_and_opens_the_pit() {
     assert!(floor > 100, "{floor} vertices on the pit floor");
     assert_eq!(in_air, 0, "{in_air} vertices inside the pit's air");
 }
+
+/// A depth camera low over the table (about 20 degrees) never looks into the pit: the pit stays
+/// filled, so the concavity check above is one a wrong viewpoint fails. Reduced resolution.
+#[test]
+#[cfg_attr(debug_assertions, ignore = "heavy: run with --release")]
+fn a_low_depth_camera_leaves_the_pit_filled() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut text = std::fs::read_to_string(repo("config/rigs/depth-fusion.toml")).expect("shipped rig readable");
+    for (from, to) in
+        [("eye_m = [0.0, -0.1197, 0.3639]", "eye_m = [0.0, -0.33, 0.155]"), ("resolution = 128", "resolution = 96")]
+    {
+        assert!(text.contains(from), "no `{from}`");
+        text = text.replacen(from, to, 1);
+    }
+    let rig = dir.path().join("rig.toml");
+    std::fs::write(&rig, text).expect("write rig");
+    let out = dir.path().join("out");
+    let report = run_scan(&rig, &out);
+    let iou = num(&report, "ground_truth", "iou");
+    let chamfer_rel = num(&report, "ground_truth", "chamfer_rel");
+    eprintln!("low camera: IoU {iou:.3}, chamfer_rel {chamfer_rel:.4}");
+    let v = obj_vertices(&out.join("model.obj"));
+    let floor = v.iter().filter(|p| p[0].hypot(p[1]) < 0.015 && (p[2] - 0.015).abs() < 0.0015).count();
+    assert_eq!(floor, 0, "the pit floor cannot be seen from this low");
+    assert!(iou < 0.8, "IoU {iou}");
+}

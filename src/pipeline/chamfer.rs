@@ -11,43 +11,34 @@ use rayon::prelude::*;
 
 use super::mesh::TriangleMesh;
 
-/// A nearest-neighbour index over a fixed set of points (metres).
+/// A nearest-neighbour index over a fixed set of points (metres): a pyramid of voxel hashes, each
+/// level's cells four times the size of the previous one's, so a query far from every point finds
+/// its neighbour in a few shells of a coarse level instead of many empty shells of the finest.
 #[derive(Debug, Clone)]
 pub struct PointIndex {
+    /// Finest first; the last level has cells at least as large as the points' bounding box.
+    levels: Vec<Level>,
+    len: usize,
+}
+
+#[derive(Debug, Clone)]
+struct Level {
     cell_m: f32,
     cells: HashMap<[i32; 3], Vec<[f32; 3]>>,
-    /// Largest shell radius, cells, that can hold any point (bounds the search).
-    max_shell: i32,
     /// Smallest and largest occupied cell index per axis.
     cell_lo: [i32; 3],
     cell_hi: [i32; 3],
 }
 
-impl PointIndex {
-    /// Index `points` (metres), bucketing them in cubes sized for a few points per cell on a surface
-    /// sample. Non-finite points are ignored.
-    pub fn new(points: &[[f32; 3]]) -> PointIndex {
-        let finite: Vec<[f32; 3]> = points.iter().copied().filter(|p| p.iter().all(|c| c.is_finite())).collect();
-        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-        for p in &finite {
-            for a in 0..3 {
-                lo[a] = lo[a].min(p[a]);
-                hi[a] = hi[a].max(p[a]);
-            }
-        }
-        let diag = if finite.is_empty() {
-            0.0
-        } else {
-            ((hi[0] - lo[0]).powi(2) + (hi[1] - lo[1]).powi(2) + (hi[2] - lo[2]).powi(2)).sqrt()
-        };
-        // Surface samples: about n^(1/2) cells per side of a surface keeps a few points per cell.
-        let per_side = (finite.len() as f32).sqrt().max(1.0);
-        let cell_m = if diag > 0.0 { (diag / per_side).max(f32::MIN_POSITIVE * 1e6) } else { 1.0 };
+/// Shells searched on a level before moving to a coarser one.
+const SHELLS_PER_LEVEL: i32 = 4;
+
+impl Level {
+    fn new(points: &[[f32; 3]], cell_m: f32) -> Level {
         let mut cells: HashMap<[i32; 3], Vec<[f32; 3]>> = HashMap::new();
-        for p in finite {
-            cells.entry(cell_of(&p, cell_m)).or_default().push(p);
+        for p in points {
+            cells.entry(cell_of(p, cell_m)).or_default().push(*p);
         }
-        let max_shell = if diag > 0.0 { (diag / cell_m).ceil() as i32 + 2 } else { 2 };
         let (mut cell_lo, mut cell_hi) = ([i32::MAX; 3], [i32::MIN; 3]);
         for k in cells.keys() {
             for a in 0..3 {
@@ -55,42 +46,31 @@ impl PointIndex {
                 cell_hi[a] = cell_hi[a].max(k[a]);
             }
         }
-        PointIndex { cell_m, cells, max_shell, cell_lo, cell_hi }
+        Level { cell_m, cells, cell_lo, cell_hi }
     }
 
-    /// Number of indexed points.
-    pub fn len(&self) -> usize {
-        self.cells.values().map(Vec::len).sum()
-    }
-
-    /// True when nothing is indexed.
-    pub fn is_empty(&self) -> bool {
-        self.cells.is_empty()
-    }
-
-    /// Distance from `q` to the nearest indexed point, metres; `None` for an empty index.
-    pub fn nearest_distance(&self, q: &[f32; 3]) -> Option<f32> {
-        if self.cells.is_empty() || !q.iter().all(|c| c.is_finite()) {
-            return None;
-        }
+    /// The nearest squared distance if it is certain after at most `max_shells` shells beyond the
+    /// points' box (`None` if the search stopped before it was certain).
+    fn search(&self, q: &[f32; 3], max_shells: i32) -> Option<f32> {
         let c = cell_of(q, self.cell_m);
-        let offset = self.offset_shells(&c);
+        // Shells between q's cell and the points' box hold nothing.
+        let offset = (0..3).map(|a| (self.cell_lo[a] - c[a]).max(c[a] - self.cell_hi[a]).max(0)).max().unwrap_or(0);
+        let span = (0..3).map(|a| self.cell_hi[a] - self.cell_lo[a]).max().unwrap_or(0);
         let d2 = |p: &[f32; 3]| (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2);
-        if offset > 4 {
-            // Far outside the points: a linear scan beats visiting the empty shells in between.
-            let best2 = self.cells.values().flatten().map(d2).fold(f32::INFINITY, f32::min);
-            return best2.is_finite().then(|| best2.sqrt());
-        }
         let mut best2 = f32::INFINITY;
-        let mut r = 0i32;
+        let mut r = offset;
         loop {
-            // Every point in shell r is at least (r - 1) cells away from q.
+            // Every point in shell r or beyond is at least (r - 1) cells away from q.
             let floor = (r - 1).max(0) as f32 * self.cell_m;
             if best2.is_finite() && floor * floor > best2 {
-                break;
+                return Some(best2);
             }
-            if r > self.max_shell + offset {
-                break;
+            if r > offset + span + 2 {
+                // Every cell of the box was visited.
+                return best2.is_finite().then_some(best2);
+            }
+            if r > offset + max_shells {
+                return None;
             }
             for dz in -r..=r {
                 for dy in -r..=r {
@@ -107,12 +87,61 @@ impl PointIndex {
             }
             r += 1;
         }
-        best2.is_finite().then(|| best2.sqrt())
+    }
+}
+
+impl PointIndex {
+    /// Index `points` (metres), the finest level sized for a few points per cell on a surface
+    /// sample. Non-finite points are ignored.
+    pub fn new(points: &[[f32; 3]]) -> PointIndex {
+        let finite: Vec<[f32; 3]> = points.iter().copied().filter(|p| p.iter().all(|c| c.is_finite())).collect();
+        if finite.is_empty() {
+            return PointIndex { levels: Vec::new(), len: 0 };
+        }
+        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for p in &finite {
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
+            }
+        }
+        let diag = ((hi[0] - lo[0]).powi(2) + (hi[1] - lo[1]).powi(2) + (hi[2] - lo[2]).powi(2)).sqrt();
+        // Surface samples: about n^(1/2) cells along the diagonal keeps a few points per cell.
+        let per_side = (finite.len() as f32).sqrt().max(1.0);
+        let mut cell_m = if diag > 0.0 { (diag / per_side).max(1e-6) } else { 1.0 };
+        let mut levels = Vec::new();
+        loop {
+            levels.push(Level::new(&finite, cell_m));
+            if cell_m >= diag || levels.len() >= 12 {
+                break;
+            }
+            cell_m *= 4.0;
+        }
+        PointIndex { levels, len: finite.len() }
     }
 
-    /// How many shells separate cell `c` from the nearest occupied cell's box (0 inside it).
-    fn offset_shells(&self, c: &[i32; 3]) -> i32 {
-        (0..3).map(|a| (self.cell_lo[a] - c[a]).max(c[a] - self.cell_hi[a]).max(0)).max().unwrap_or(0)
+    /// Number of indexed points.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// True when nothing is indexed.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Distance from `q` to the nearest indexed point, metres; `None` for an empty index or a
+    /// non-finite query.
+    pub fn nearest_distance(&self, q: &[f32; 3]) -> Option<f32> {
+        if !q.iter().all(|c| c.is_finite()) {
+            return None;
+        }
+        let (last, finer) = self.levels.split_last()?;
+        finer
+            .iter()
+            .find_map(|level| level.search(q, SHELLS_PER_LEVEL))
+            .or_else(|| last.search(q, i32::MAX / 4))
+            .map(f32::sqrt)
     }
 }
 
