@@ -9,8 +9,10 @@ use std::sync::mpsc::SyncSender;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+mod depth;
 mod per_light;
 
+pub use depth::{capture_fresh_depth, run_depth_scan, DepthView};
 pub use per_light::{run_per_light_scan, PerLightView};
 
 use crate::config::ScanPlan;

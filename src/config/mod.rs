@@ -347,6 +347,15 @@ impl RigConfig {
         if self.reconstruction.method == Method::ShadowCarving && plan.shadow_lights.is_empty() {
             bad("scan.shadow_lights", "method \"shadow-carving\" needs at least one light here".into());
         }
+        if self.reconstruction.method == Method::DepthFusion {
+            if self.depth_camera.is_none() {
+                bad("depth_camera", "method \"depth-fusion\" needs a [depth_camera]".into());
+            }
+            let t = self.reconstruction.depth_fusion.truncation_voxels;
+            if !(t.is_finite() && t > 0.0) {
+                bad("reconstruction.depth_fusion.truncation_voxels", "must be a positive number of voxels".into());
+            }
+        }
         if plan.capture_timeout_ms == 0 {
             bad("scan.capture_timeout_ms", "must be at least 1".into());
         }

@@ -517,7 +517,7 @@ fn default_max_stale() -> u32 {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ReconstructionConfig {
-    /// Method: `"space-carving"` or `"shadow-carving"`.
+    /// Method: `"space-carving"`, `"shadow-carving"` or `"depth-fusion"`.
     pub method: Method,
     /// Working volume minimum corner, object frame, metres.
     pub bbox_min_m: [f64; 3],
@@ -531,6 +531,32 @@ pub struct ReconstructionConfig {
     /// `[reconstruction.mesh]`.
     #[serde(default)]
     pub mesh: MeshConfig,
+    /// `[reconstruction.depth_fusion]` (method `depth-fusion`).
+    #[serde(default)]
+    pub depth_fusion: DepthFusionConfig,
+}
+
+/// `[reconstruction.depth_fusion]`: the TSDF of method `depth-fusion`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DepthFusionConfig {
+    /// Truncation distance, voxels.
+    #[serde(default = "default_truncation_voxels")]
+    pub truncation_voxels: f64,
+    /// Whether a depth pixel without a measurement is free space (true for a simulated rig, whose
+    /// background is empty) rather than unknown (a real sensor's dropout).
+    #[serde(default)]
+    pub missing_is_free: bool,
+}
+
+fn default_truncation_voxels() -> f64 {
+    3.0
+}
+
+impl Default for DepthFusionConfig {
+    fn default() -> Self {
+        DepthFusionConfig { truncation_voxels: default_truncation_voxels(), missing_is_free: false }
+    }
 }
 
 impl ReconstructionConfig {
@@ -548,6 +574,8 @@ pub enum Method {
     SpaceCarving,
     /// Visual hull, then shadow carving with the lights of `scan.shadow_lights`.
     ShadowCarving,
+    /// TSDF fusion of the depth camera's maps over turntable positions.
+    DepthFusion,
 }
 
 impl Method {
@@ -556,6 +584,7 @@ impl Method {
         match self {
             Method::SpaceCarving => "space-carving",
             Method::ShadowCarving => "shadow-carving",
+            Method::DepthFusion => "depth-fusion",
         }
     }
 }

@@ -6,12 +6,15 @@
 //! - [`space_carving`]: the visual hull, dense reference and hierarchical incremental carver.
 //! - [`shadows`], [`shadow_carving`], [`light_calibration`]: shadow detection, shadow carving, point
 //!   light positions from a calibration sphere.
+//! - [`depth_fusion`], [`chamfer`]: TSDF fusion of depth maps; Chamfer distance between point sets.
 //! - [`mesh`]: watertight surface extraction from an occupancy.
 //! - [`coloring`]: per-vertex colours from calibrated images.
 //! - [`export`]: PLY / STL / OBJ writers, written atomically.
 //! - [`structured_light`]: Gray-code patterns and their per-pixel decoding.
 
+pub mod chamfer;
 pub mod coloring;
+pub mod depth_fusion;
 pub mod export;
 pub mod light_calibration;
 pub mod mesh;
@@ -22,7 +25,9 @@ pub mod silhouette;
 pub mod space_carving;
 pub mod structured_light;
 
+pub use chamfer::{chamfer_distance, sample_mesh, Chamfer, PointIndex};
 pub use coloring::{color_vertices, ColorView};
+pub use depth_fusion::{DepthFusionError, FusionParams, IntegrateStats, Tsdf};
 pub use export::ExportError;
 pub use mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};

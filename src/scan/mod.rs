@@ -2,6 +2,7 @@
 //! that owns the devices, reconstruction on this one as views arrive); `reconstruct` runs the same
 //! pipeline on a calibrated image set on disk. Both write the same outputs (see [`output`]).
 
+pub mod depth;
 pub mod output;
 pub mod reconstruct;
 pub mod report;
@@ -79,6 +80,9 @@ pub enum ScanError {
     /// Shadow detection or shadow carving failed.
     #[error("shadow carving failed")]
     Shadow(#[source] shadow::ShadowScanError),
+    /// Depth fusion rejected its input.
+    #[error("depth fusion failed")]
+    DepthFusion(#[source] crate::pipeline::DepthFusionError),
 }
 
 /// What a running scan tells its caller.
@@ -112,6 +116,9 @@ pub fn run_scan(
 ) -> Result<Report, ScanError> {
     if config.reconstruction.method == crate::config::Method::ShadowCarving {
         return shadow::run_shadow_scan(config, out, None, cancel, events);
+    }
+    if config.reconstruction.method == crate::config::Method::DepthFusion {
+        return depth::run_depth_scan(config, out, cancel, events);
     }
     let started = Instant::now();
     let out = OutputDir::prepare(out)?;

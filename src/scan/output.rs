@@ -207,6 +207,8 @@ impl OutputDir {
                 containment: overlap.1,
                 voxels: truth.count(),
                 volume_m3: truth.count() as f64 * voxel_volume,
+                chamfer_m: None,
+                chamfer_rel: None,
             }
         });
         let mut files = vec!["model.ply".to_owned(), "model.stl".into(), "model.obj".into(), "voxels.ply".into()];
@@ -235,6 +237,7 @@ impl OutputDir {
             files,
             visual_hull: None,
             shadow_carving: None,
+            depth_fusion: None,
         };
         let json = serde_json::to_vec_pretty(&report).map_err(ScanError::EncodeReport)?;
         write_atomic(&p("report.json"), &json).map_err(ScanError::Export)?;

@@ -45,6 +45,9 @@ pub struct Report {
     /// What shadow carving did (method `shadow-carving` only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub shadow_carving: Option<crate::scan::shadow::ShadowSummary>,
+    /// What depth fusion did (method `depth-fusion` only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub depth_fusion: Option<crate::scan::depth::DepthFusionSummary>,
 }
 
 /// The visual hull before refinement, compared with the simulated scene where there is one.
@@ -94,4 +97,11 @@ pub struct GroundTruth {
     pub voxels: u64,
     /// Volume of the truth voxels, cubic metres.
     pub volume_m3: f64,
+    /// Symmetric Chamfer distance between the mesh and the true surface, metres (mean of both directed
+    /// mean nearest-neighbour distances over area-uniform samples; methods that compute it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub chamfer_m: Option<f64>,
+    /// `chamfer_m` over the scene's bounding-box diagonal.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub chamfer_rel: Option<f64>,
 }

@@ -1,0 +1,133 @@
+//! The depth-camera sequence: at each turntable position move, settle, and capture one fresh depth
+//! frame (exposed after the move finished), with the same freshness and sequence-gap rules as the
+//! colour sequence.
+
+use std::sync::mpsc::SyncSender;
+use std::time::{Duration, Instant};
+
+use super::{
+    park, position_angle, AcquisitionError, AcquisitionSummary, CancelToken, Progress, SequenceTracker, Stage,
+};
+use crate::config::ScanPlan;
+use crate::devices::{DepthFrame, DeviceError, Rig};
+
+/// One depth frame and how it was taken.
+#[derive(Debug, Clone)]
+pub struct DepthView {
+    /// 0-based index of the turntable position in the plan.
+    pub position: usize,
+    /// Turntable angle the frame was taken at, degrees (as reported by the turntable).
+    pub angle_deg: f64,
+    /// The fresh depth frame.
+    pub frame: DepthFrame,
+    /// Stale frames thrown away before this one.
+    pub stale_discarded: u32,
+}
+
+/// Run the depth sequence of `plan` on `rig` (which must have a depth camera), sending one
+/// [`DepthView`] per position; lights are not touched. The rig is parked at the end, also after an
+/// error or cancellation.
+pub fn run_depth_scan(
+    rig: &mut Rig,
+    plan: &ScanPlan,
+    views: &SyncSender<DepthView>,
+    cancel: &CancelToken,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<AcquisitionSummary, AcquisitionError> {
+    let result = depth_scan_steps(rig, plan, views, cancel, progress);
+    let total = plan.positions as usize;
+    progress(&Progress { step: result.as_ref().map_or(0, |s| s.views), total, stage: Stage::Parking });
+    let parked = park(rig, plan);
+    match (result, parked) {
+        (Ok(summary), Ok(())) => {
+            progress(&Progress { step: total, total, stage: Stage::Done });
+            Ok(summary)
+        }
+        (Ok(_), Err(source)) => Err(AcquisitionError::Park { source }),
+        (Err(e), parked) => {
+            if let Err(p) = parked {
+                tracing::error!(error = %p, "parking after a failed depth scan also failed");
+            }
+            Err(e)
+        }
+    }
+}
+
+fn depth_scan_steps(
+    rig: &mut Rig,
+    plan: &ScanPlan,
+    views: &SyncSender<DepthView>,
+    cancel: &CancelToken,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<AcquisitionSummary, AcquisitionError> {
+    let total = plan.positions as usize;
+    let move_timeout = Duration::from_millis(plan.move_timeout_ms);
+    let capture_timeout = Duration::from_millis(plan.capture_timeout_ms);
+    let mut summary = AcquisitionSummary::default();
+    let mut sequence = SequenceTracker::default();
+    for position in 0..total {
+        if cancel.is_cancelled() {
+            return Err(AcquisitionError::Cancelled { completed: position, total });
+        }
+        let span = tracing::info_span!("depth_position", position, total);
+        let _enter = span.enter();
+        let device = |step: &'static str| move |source| AcquisitionError::Device { step, position, source };
+        progress(&Progress { step: position, total, stage: Stage::Moving });
+        rig.turntable.move_to(position_angle(plan, position), move_timeout).map_err(device("turning the table"))?;
+        let angle_deg = rig.turntable.angle();
+        if plan.settle_ms > 0 {
+            progress(&Progress { step: position, total, stage: Stage::Settling });
+            std::thread::sleep(Duration::from_millis(plan.settle_ms));
+        }
+        let changed_at = Instant::now();
+        if cancel.is_cancelled() {
+            return Err(AcquisitionError::Cancelled { completed: position, total });
+        }
+        progress(&Progress { step: position, total, stage: Stage::Capturing });
+        let (frame, stale) =
+            capture_fresh_depth(rig, changed_at, capture_timeout, plan.max_stale_frames, position, &mut sequence)?;
+        summary.stale_discarded += u64::from(stale);
+        tracing::debug!(sequence = frame.sequence, angle_deg, stale, "captured depth");
+        views
+            .send(DepthView { position, angle_deg, frame, stale_discarded: stale })
+            .map_err(|_| AcquisitionError::PipelineGone { position })?;
+        summary.views += 1;
+    }
+    summary.dropped = sequence.dropped;
+    Ok(summary)
+}
+
+/// Capture depth frames until one exposed at or after `changed_at` arrives, discarding stale ones.
+/// Returns the frame and the number of stale frames discarded. A rig without a depth camera fails with
+/// an `Unsupported` device error.
+pub fn capture_fresh_depth(
+    rig: &mut Rig,
+    changed_at: Instant,
+    timeout: Duration,
+    max_stale: u32,
+    position: usize,
+    sequence: &mut SequenceTracker,
+) -> Result<(DepthFrame, u32), AcquisitionError> {
+    let step = "capturing a depth frame";
+    let Some(camera) = rig.depth_camera.as_mut() else {
+        let source = DeviceError::Unsupported {
+            device: "depth_camera".into(),
+            operation: "depth capture (the rig has no depth camera)",
+        };
+        return Err(AcquisitionError::Device { step, position, source });
+    };
+    let mut stale = 0;
+    loop {
+        let frame =
+            camera.capture_depth(timeout).map_err(|source| AcquisitionError::Device { step, position, source })?;
+        sequence.see(frame.sequence);
+        if frame.exposure_start >= changed_at {
+            return Ok((frame, stale));
+        }
+        stale += 1;
+        tracing::trace!(sequence = frame.sequence, "discarded a stale depth frame");
+        if stale > max_stale {
+            return Err(AcquisitionError::StaleFrames { position, count: stale });
+        }
+    }
+}
