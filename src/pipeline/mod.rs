@@ -6,21 +6,26 @@
 //! - [`space_carving`]: the visual hull, dense reference and hierarchical incremental carver.
 //! - [`mesh`]: watertight surface extraction from an occupancy.
 //! - [`coloring`]: per-vertex colours from calibrated images.
+//! - [`photo_consistency`], [`voxel_coloring`]: shape and colour from photo-consistency.
 //! - [`export`]: PLY / STL / OBJ writers, written atomically.
 
 pub mod coloring;
 pub mod export;
 pub mod mesh;
 pub mod occupancy;
+pub mod photo_consistency;
 pub mod silhouette;
 pub mod space_carving;
+pub mod voxel_coloring;
 
 pub use coloring::{color_vertices, ColorView};
 pub use export::ExportError;
 pub use mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
+pub use photo_consistency::{ItemBuffer, PhotoError, PhotoParams, PhotoView};
 pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
 pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
+pub use voxel_coloring::{carve_photo, color_voxels, colour_surface, reprojection_error, ColouredSurface, PhotoModel, PhotoStats};
 
 /// Any error of the reconstruction layer, for callers that handle them alike (each keeps its cause).
 #[derive(Debug, thiserror::Error)]
@@ -40,4 +45,7 @@ pub enum PipelineError {
     /// A mask buffer has the wrong size.
     #[error("bad mask")]
     Mask(#[from] MaskSizeError),
+    /// Photo-consistency reconstruction failed.
+    #[error("photo-consistency reconstruction failed")]
+    Photo(#[from] PhotoError),
 }

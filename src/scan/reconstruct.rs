@@ -102,6 +102,7 @@ pub fn run_reconstruct(
         timings,
         started,
         events,
+        photo: None,
     })?;
     Ok(report)
 }

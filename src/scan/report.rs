@@ -37,8 +37,60 @@ pub struct Report {
     /// Comparison with the simulated scene (simulated rigs only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ground_truth: Option<GroundTruth>,
+    /// The visual hull the photo-consistency methods started from, measured like the result.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub visual_hull: Option<VisualHullReport>,
+    /// What the photo-consistency methods did.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub photo: Option<PhotoReport>,
     /// Files written, relative to the output directory.
     pub files: Vec<String>,
+}
+
+/// The visual hull of a photo-consistency run, for comparison with the result.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct VisualHullReport {
+    /// Occupied voxels of the hull.
+    pub occupied_voxels: u64,
+    /// IoU of the hull with the simulated scene's truth (simulated rigs only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub iou: Option<f64>,
+    /// Containment of the truth in the hull (simulated rigs only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub containment: Option<f64>,
+    /// Mean absolute colour error per channel (0..255) of the hull's surface voxels coloured the same
+    /// way as the result, against the true surface colour (simulated rigs only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub colour_error: Option<f64>,
+    /// Photometric re-projection error of the hull coloured the same way, mean absolute difference
+    /// per channel (0..255) over silhouette-or-model pixels of every view.
+    pub reprojection_error: f64,
+}
+
+/// Photo-consistency details of a `voxel-coloring` or `space-carving-photo` run.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct PhotoReport {
+    /// Colour standard deviation threshold, 8-bit levels.
+    pub threshold: f64,
+    /// NCC threshold, if the NCC test was on.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub min_ncc: Option<f64>,
+    /// Views used.
+    pub views: usize,
+    /// Iterations (space carving) or layers (voxel colouring).
+    pub iterations: usize,
+    /// Voxel visits.
+    pub visits: u64,
+    /// Voxels carved by photo-consistency (beyond the hull).
+    pub carved: u64,
+    /// Seconds spent carving and colouring.
+    pub seconds: f64,
+    /// Surface voxels of the result.
+    pub surface_voxels: usize,
+    /// Surface voxels some view sees (the ones with a measured colour).
+    pub seen_surface_voxels: usize,
+    /// Photometric re-projection error of the coloured result (see [`VisualHullReport`]).
+    pub reprojection_error: f64,
 }
 
 /// Stage timings, seconds of wall-clock time. Stages overlap in a scan (the pipeline runs while the
@@ -73,4 +125,8 @@ pub struct GroundTruth {
     pub voxels: u64,
     /// Volume of the truth voxels, cubic metres.
     pub volume_m3: f64,
+    /// Mean absolute colour error per channel (0..255) of the result's seen surface voxels against
+    /// the scene's true surface colour at their centres (photo-consistency methods only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub colour_error: Option<f64>,
 }
