@@ -556,7 +556,8 @@ impl Method {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PhotoConfig {
-    /// Largest colour standard deviation between views of a kept voxel, 8-bit levels (0..255).
+    /// Largest colour standard deviation between the views of a kept voxel (of their mean colours
+    /// over its footprint), 8-bit levels (0..255).
     #[serde(default = "default_photo_threshold")]
     pub threshold: f64,
     /// Smallest mean normalised cross-correlation of a textured kept voxel (-1..1); absent = no NCC test.
@@ -571,8 +572,9 @@ pub struct PhotoConfig {
     /// Cap on carving iterations.
     #[serde(default = "default_photo_iterations")]
     pub max_iterations: usize,
-    /// `voxel-coloring` only: use the views whose turntable angle lies within this arc from the
-    /// first position, degrees (the ordinal visibility constraint needs the cameras on one side).
+    /// `voxel-coloring` only: use the views whose viewing direction (from the working volume's
+    /// centre) is within this angle of the first view's, on either side, degrees (the ordinal
+    /// visibility constraint needs the cameras on one side of a plane).
     #[serde(default = "default_photo_arc")]
     pub arc_deg: f64,
 }
@@ -590,7 +592,7 @@ fn default_photo_iterations() -> usize {
     500
 }
 fn default_photo_arc() -> f64 {
-    90.0
+    45.0
 }
 
 impl Default for PhotoConfig {

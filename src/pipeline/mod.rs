@@ -25,7 +25,9 @@ pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
 pub use photo_consistency::{ItemBuffer, PhotoError, PhotoParams, PhotoView};
 pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
 pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
-pub use voxel_coloring::{carve_photo, color_voxels, colour_surface, reprojection_error, ColouredSurface, PhotoModel, PhotoStats};
+pub use voxel_coloring::{
+    carve_photo, color_voxels, colour_surface, reprojection_error, ColouredSurface, PhotoModel, PhotoStats,
+};
 
 /// Any error of the reconstruction layer, for callers that handle them alike (each keeps its cause).
 #[derive(Debug, thiserror::Error)]

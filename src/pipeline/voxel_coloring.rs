@@ -35,8 +35,8 @@ use rayon::prelude::*;
 
 use super::occupancy::Occupancy;
 use super::photo_consistency::{
-    best_colour, check_inputs, facing, is_consistent, ncc_pattern, normal_estimate, render_item_buffers,
-    sample_view, ItemBuffer, PhotoError, PhotoParams, PhotoView, ViewSample, VoxelCamera,
+    best_colour, check_inputs, facing, is_consistent, ncc_pattern, normal_estimate, render_item_buffers, sample_view,
+    ItemBuffer, PhotoError, PhotoParams, PhotoView, ViewSample, VoxelCamera,
 };
 use crate::geometry::VoxelGrid;
 
@@ -224,7 +224,11 @@ pub fn ordinal_direction(grid: &VoxelGrid, views: &[PhotoView<'_>]) -> Result<[f
 }
 
 /// Voxel colouring with the ordinal visibility constraint from `start` (see the module docs).
-pub fn color_voxels(start: &Occupancy, views: &[PhotoView<'_>], params: &PhotoParams) -> Result<PhotoModel, PhotoError> {
+pub fn color_voxels(
+    start: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+) -> Result<PhotoModel, PhotoError> {
     let t = Instant::now();
     let grid = *start.grid();
     check_inputs(&grid, views, params)?;

@@ -16,8 +16,8 @@ use crate::config::{Method, PhotoConfig};
 use crate::geometry::VoxelGrid;
 use crate::pipeline::photo_consistency::UNSEEN_COLOUR;
 use crate::pipeline::{
-    carve_photo, color_voxels, colour_surface, reprojection_error, ColouredSurface, Occupancy, PhotoError,
-    PhotoParams, PhotoView, TriangleMesh,
+    carve_photo, color_voxels, colour_surface, reprojection_error, ColouredSurface, Occupancy, PhotoError, PhotoParams,
+    PhotoView, TriangleMesh,
 };
 
 /// The pipeline parameters of a `[reconstruction.photo]` section.
@@ -127,10 +127,23 @@ pub fn ordinal_subset<'a>(grid: &VoxelGrid, views: &[PhotoView<'a>], arc_deg: f6
     views.iter().filter(|v| dir(v).is_some_and(|d| d.dot(&first) >= cos - 1e-12)).copied().collect()
 }
 
+/// Mean absolute colour error per channel (0..255) of the seen surface voxels next to the true
+/// surface, against the true colour at their centres.
 fn colour_error(surface: &ColouredSurface, grid: &VoxelGrid, truth: &Truth<'_>) -> Option<f64> {
     let (mut sum, mut n) = (0f64, 0u64);
     for ((v, c), &seen) in surface.voxels.iter().zip(&surface.colours).zip(&surface.seen) {
-        if !seen {
+        // Only voxels next to the true surface (their 3x3x3 neighbourhood holds both truly occupied
+        // and truly empty voxels) have a true surface colour to compare with.
+        let (a, b, c0) = (v[0] as i64, v[1] as i64, v[2] as i64);
+        let mut inside = 0;
+        for dz in -1..=1 {
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    inside += truth.occupancy.get_signed(a + dx, b + dy, c0 + dz) as u32;
+                }
+            }
+        }
+        if !seen || inside == 0 || inside == 27 {
             continue;
         }
         let t = (truth.colour_at)(&grid.centre(v[0] as usize, v[1] as usize, v[2] as usize));
@@ -155,8 +168,11 @@ pub fn reconstruct_photo(
     let grid = *hull.grid();
     let used: Vec<PhotoView<'_>> =
         if method == Method::VoxelColoring { ordinal_subset(&grid, views, config.arc_deg) } else { views.to_vec() };
-    let model =
-        if method == Method::VoxelColoring { color_voxels(hull, &used, &params)? } else { carve_photo(hull, &used, &params)? };
+    let model = if method == Method::VoxelColoring {
+        color_voxels(hull, &used, &params)?
+    } else {
+        carve_photo(hull, &used, &params)?
+    };
     tracing::info!(
         method = method.name(),
         views = used.len(),

@@ -125,8 +125,10 @@ pub struct GroundTruth {
     pub voxels: u64,
     /// Volume of the truth voxels, cubic metres.
     pub volume_m3: f64,
-    /// Mean absolute colour error per channel (0..255) of the result's seen surface voxels against
-    /// the scene's true surface colour at their centres (photo-consistency methods only).
+    /// Mean absolute colour error per channel (0..255) of the result's seen surface voxels that lie
+    /// next to the true surface (a truly occupied and a truly empty voxel among their 26 neighbours
+    /// and themselves) against the scene's true surface colour (reflectance) at their centres
+    /// (photo-consistency methods only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub colour_error: Option<f64>,
 }
