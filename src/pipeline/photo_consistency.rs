@@ -228,7 +228,7 @@ impl VoxelCamera {
     /// The pixel a continuous image point falls in, if inside the image.
     #[inline]
     pub(crate) fn pixel(&self, u: f32, v: f32) -> Option<(usize, usize)> {
-        (u >= 0.0 && v >= 0.0 && u < self.width as f32 && v < self.height as f32).then(|| (u as usize, v as usize))
+        (u >= 0.0 && v >= 0.0 && u < self.width as f32 && v < self.height as f32).then_some((u as usize, v as usize))
     }
 
     /// The footprint of voxel `v` (see the module docs); `None` when a corner is behind the camera or
@@ -239,7 +239,7 @@ impl VoxelCamera {
         for corner in 0..8 {
             let f = [0, 1, 2].map(|a| if corner >> a & 1 == 1 { 0.5 } else { -0.5 });
             let (z, u, w) = self.project(self.point(v, f));
-            if !(z > 0.0) {
+            if z.is_nan() || z <= 0.0 {
                 return None;
             }
             u0 = u0.min(u);
@@ -247,7 +247,8 @@ impl VoxelCamera {
             v0 = v0.min(w);
             v1 = v1.max(w);
         }
-        if !(depth > 0.0) || !(u1 >= 0.0 && v1 >= 0.0 && u0 < self.width as f32 && v0 < self.height as f32) {
+        let on_image = u1 >= 0.0 && v1 >= 0.0 && u0 < self.width as f32 && v0 < self.height as f32;
+        if depth.is_nan() || depth <= 0.0 || !on_image {
             return None;
         }
         // Pixels whose centre x + 0.5 lies in [u0, u1].
@@ -439,7 +440,7 @@ pub(crate) fn ncc_pattern(
     for s in 0..8 {
         let f = [0, 1, 2].map(|a| if s >> a & 1 == 1 { 0.25 } else { -0.25 });
         let (z, u, w) = cam.project(cam.point(v, f));
-        if !(z > 0.0) {
+        if z.is_nan() || z <= 0.0 {
             return None;
         }
         let (x, y) = cam.pixel(u, w)?;
@@ -476,8 +477,8 @@ pub(crate) fn best_colour(samples: &[ViewSample]) -> [u8; 3] {
     let mut acc = [0f32; 3];
     let mut n = 0f32;
     for s in samples.iter().filter(|s| s.cos >= best - 0.15) {
-        for c in 0..3 {
-            acc[c] += s.count as f32 * s.mean[c];
+        for (a, m) in acc.iter_mut().zip(&s.mean) {
+            *a += s.count as f32 * m;
         }
         n += s.count as f32;
     }

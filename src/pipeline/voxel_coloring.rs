@@ -134,6 +134,7 @@ impl Dense {
     }
 }
 
+#[allow(clippy::too_many_arguments)] // the loop state of one voxel's visit, kept as plain arguments
 /// Per-view samples of surface voxel `idx` under item buffers (views facing below `min_cos` dropped),
 /// and NCC patterns when asked for.
 fn gather(

@@ -292,25 +292,6 @@ pub fn dataset_options(
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn bbox_and_silhouette_arguments_parse_or_say_why() {
-        let b = parse_bbox("-1,-2,-3,1,2,3").expect("valid");
-        assert_eq!(b.min, [-1.0, -2.0, -3.0]);
-        assert!(parse_bbox("1,2,3").expect_err("short").contains("6 numbers"));
-        assert!(parse_bbox("0,0,0,1,x,1").expect_err("nan").contains("`x`"));
-        assert!(parse_bbox("0,0,0,1,-1,1").expect_err("inverted").contains("max > min"));
-        let p = parse_silhouette("threshold=0.2,dilate=3,erode=1").expect("valid");
-        assert_eq!((p.threshold, p.dilate, p.erode), (0.2, 3, 1));
-        assert_eq!(parse_silhouette("").expect("defaults"), crate::pipeline::SilhouetteParams::MIDDLEBURY);
-        assert!(parse_silhouette("thresh=1").expect_err("unknown").contains("thresh"));
-        assert!(parse_silhouette("dilate=2.5").expect_err("fraction").contains("whole number"));
-    }
-}
-
 /// Parse `threshold=T,min_cos=C,min_views=N,ncc=X,arc=DEG,iterations=I` (any subset, any order) over
 /// the defaults of `[reconstruction.photo]`.
 pub fn parse_photo(text: &str) -> Result<crate::config::PhotoConfig, &'static str> {
@@ -341,4 +322,23 @@ pub fn parse_photo(text: &str) -> Result<crate::config::PhotoConfig, &'static st
         return Err("arc must be in (0, 180) degrees");
     }
     Ok(c)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bbox_and_silhouette_arguments_parse_or_say_why() {
+        let b = parse_bbox("-1,-2,-3,1,2,3").expect("valid");
+        assert_eq!(b.min, [-1.0, -2.0, -3.0]);
+        assert!(parse_bbox("1,2,3").expect_err("short").contains("6 numbers"));
+        assert!(parse_bbox("0,0,0,1,x,1").expect_err("nan").contains("`x`"));
+        assert!(parse_bbox("0,0,0,1,-1,1").expect_err("inverted").contains("max > min"));
+        let p = parse_silhouette("threshold=0.2,dilate=3,erode=1").expect("valid");
+        assert_eq!((p.threshold, p.dilate, p.erode), (0.2, 3, 1));
+        assert_eq!(parse_silhouette("").expect("defaults"), crate::pipeline::SilhouetteParams::MIDDLEBURY);
+        assert!(parse_silhouette("thresh=1").expect_err("unknown").contains("thresh"));
+        assert!(parse_silhouette("dilate=2.5").expect_err("fraction").contains("whole number"));
+    }
 }
