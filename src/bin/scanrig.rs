@@ -60,6 +60,10 @@ enum Command {
         /// Occupancy smoothing radius for the mesh, voxels.
         #[arg(long, default_value_t = 0)]
         smooth: u32,
+        /// Photo-consistency test of voxel-coloring / space-carving-photo:
+        /// threshold=T,min_cos=C,min_views=N[,ncc=X][,arc=DEG] (T in 0..255 levels).
+        #[arg(long)]
+        photo: Option<String>,
         /// Output directory.
         #[arg(long)]
         out: PathBuf,
@@ -253,11 +257,16 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             masks,
             silhouette,
             smooth,
+            photo,
             out,
         } => {
             let method = match method.as_str() {
                 "space-carving" => scanrig::config::Method::SpaceCarving,
-                other => anyhow::bail!("--method {other}: unknown method (known: space-carving)"),
+                "voxel-coloring" => scanrig::config::Method::VoxelColoring,
+                "space-carving-photo" => scanrig::config::Method::SpaceCarvingPhoto,
+                other => anyhow::bail!(
+                    "--method {other}: unknown method (known: space-carving, voxel-coloring, space-carving-photo)"
+                ),
             };
             if !(2..=4096).contains(&resolution) {
                 anyhow::bail!("--resolution {resolution}: must be between 2 and 4096 voxels");
@@ -272,9 +281,16 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 Some(s) => reconstruct::parse_silhouette(s).map_err(|e| anyhow::anyhow!("--silhouette {s}: {e}"))?,
                 None => scanrig::pipeline::SilhouetteParams::MIDDLEBURY,
             };
+            let mut dataset_opts = reconstruct::dataset_options(&dataset, calibration, views.as_deref(), masks, params);
+            // The photo-consistency methods need the images, not only the silhouettes.
+            dataset_opts.load_images |= method.is_photo();
             let opts = reconstruct::ReconstructOptions {
-                dataset: reconstruct::dataset_options(&dataset, calibration, views.as_deref(), masks, params),
+                dataset: dataset_opts,
                 method,
+                photo: match &photo {
+                    Some(p) => reconstruct::parse_photo(p).map_err(|e| anyhow::anyhow!("--photo {p}: {e}"))?,
+                    None => scanrig::config::PhotoConfig::default(),
+                },
                 resolution,
                 bbox,
                 smooth_radius: smooth,

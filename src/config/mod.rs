@@ -383,6 +383,22 @@ impl RigConfig {
                 format!("must be at most {} voxels", crate::pipeline::MeshParams::MAX_SMOOTH_RADIUS),
             );
         }
+        let p = &r.photo;
+        if !(p.threshold.is_finite() && p.threshold > 0.0 && p.threshold <= 255.0) {
+            bad("reconstruction.photo.threshold", format!("must be in (0, 255] levels, got {}", p.threshold));
+        }
+        if p.min_ncc.is_some_and(|n| !(-1.0..=1.0).contains(&n)) {
+            bad("reconstruction.photo.min_ncc", "must be in [-1, 1]".into());
+        }
+        if p.min_views < 2 {
+            bad("reconstruction.photo.min_views", format!("must be at least 2, got {}", p.min_views));
+        }
+        if !(-1.0..=1.0).contains(&p.min_cos) {
+            bad("reconstruction.photo.min_cos", format!("must be in [-1, 1], got {}", p.min_cos));
+        }
+        if !(p.arc_deg.is_finite() && p.arc_deg > 0.0 && p.arc_deg < 180.0) {
+            bad("reconstruction.photo.arc_deg", format!("must be in (0, 180) degrees, got {}", p.arc_deg));
+        }
         out
     }
 }

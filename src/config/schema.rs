@@ -517,7 +517,8 @@ fn default_max_stale() -> u32 {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ReconstructionConfig {
-    /// Method: `"space-carving"`, `"shadow-carving"` or `"depth-fusion"`.
+    /// Method: `"space-carving"`, `"shadow-carving"`, `"depth-fusion"`, `"voxel-coloring"` or
+    /// `"space-carving-photo"`.
     pub method: Method,
     /// Working volume minimum corner, object frame, metres.
     pub bbox_min_m: [f64; 3],
@@ -534,6 +535,9 @@ pub struct ReconstructionConfig {
     /// `[reconstruction.depth_fusion]` (method `depth-fusion`).
     #[serde(default)]
     pub depth_fusion: DepthFusionConfig,
+    /// `[reconstruction.photo]`: photo-consistency methods only.
+    #[serde(default)]
+    pub photo: PhotoConfig,
 }
 
 /// `[reconstruction.depth_fusion]`: the TSDF of method `depth-fusion`.
@@ -576,6 +580,10 @@ pub enum Method {
     ShadowCarving,
     /// TSDF fusion of the depth camera's maps over turntable positions.
     DepthFusion,
+    /// Voxel colouring with the ordinal visibility constraint (cameras on one side of a plane).
+    VoxelColoring,
+    /// Generalized space carving by photo-consistency, from the visual hull (any camera placement).
+    SpaceCarvingPhoto,
 }
 
 impl Method {
@@ -585,6 +593,69 @@ impl Method {
             Method::SpaceCarving => "space-carving",
             Method::ShadowCarving => "shadow-carving",
             Method::DepthFusion => "depth-fusion",
+            Method::VoxelColoring => "voxel-coloring",
+            Method::SpaceCarvingPhoto => "space-carving-photo",
+        }
+    }
+
+    /// True for the photo-consistency methods (they need the images, not only silhouettes).
+    pub fn is_photo(self) -> bool {
+        matches!(self, Method::VoxelColoring | Method::SpaceCarvingPhoto)
+    }
+}
+
+/// `[reconstruction.photo]`: the photo-consistency test (see `pipeline::photo_consistency`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhotoConfig {
+    /// Largest colour standard deviation between the views of a kept voxel (of their mean colours
+    /// over its footprint), 8-bit levels (0..255).
+    #[serde(default = "default_photo_threshold")]
+    pub threshold: f64,
+    /// Smallest mean normalised cross-correlation of a textured kept voxel (-1..1); absent = no NCC test.
+    #[serde(default)]
+    pub min_ncc: Option<f64>,
+    /// Views needed to judge a voxel (at least 2).
+    #[serde(default = "default_photo_min_views")]
+    pub min_views: usize,
+    /// Views facing a voxel's estimated normal with a cosine below this are not consulted (-1..1).
+    #[serde(default = "default_photo_min_cos")]
+    pub min_cos: f64,
+    /// Cap on carving iterations.
+    #[serde(default = "default_photo_iterations")]
+    pub max_iterations: usize,
+    /// `voxel-coloring` only: use the views whose viewing direction (from the working volume's
+    /// centre) is within this angle of the first view's, on either side, degrees (the ordinal
+    /// visibility constraint needs the cameras on one side of a plane).
+    #[serde(default = "default_photo_arc")]
+    pub arc_deg: f64,
+}
+
+fn default_photo_threshold() -> f64 {
+    18.0
+}
+fn default_photo_min_views() -> usize {
+    2
+}
+fn default_photo_min_cos() -> f64 {
+    0.2
+}
+fn default_photo_iterations() -> usize {
+    500
+}
+fn default_photo_arc() -> f64 {
+    45.0
+}
+
+impl Default for PhotoConfig {
+    fn default() -> Self {
+        PhotoConfig {
+            threshold: default_photo_threshold(),
+            min_ncc: None,
+            min_views: default_photo_min_views(),
+            min_cos: default_photo_min_cos(),
+            max_iterations: default_photo_iterations(),
+            arc_deg: default_photo_arc(),
         }
     }
 }

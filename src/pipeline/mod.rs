@@ -9,6 +9,7 @@
 //! - [`depth_fusion`], [`chamfer`]: TSDF fusion of depth maps; Chamfer distance between point sets.
 //! - [`mesh`]: watertight surface extraction from an occupancy.
 //! - [`coloring`]: per-vertex colours from calibrated images.
+//! - [`photo_consistency`], [`voxel_coloring`]: shape and colour from photo-consistency.
 //! - [`export`]: PLY / STL / OBJ writers, written atomically.
 //! - [`structured_light`]: Gray-code patterns and their per-pixel decoding.
 
@@ -19,11 +20,13 @@ pub mod export;
 pub mod light_calibration;
 pub mod mesh;
 pub mod occupancy;
+pub mod photo_consistency;
 pub mod shadow_carving;
 pub mod shadows;
 pub mod silhouette;
 pub mod space_carving;
 pub mod structured_light;
+pub mod voxel_coloring;
 
 pub use chamfer::{chamfer_distance, sample_mesh, Chamfer, PointIndex};
 pub use coloring::{color_vertices, ColorView};
@@ -31,10 +34,14 @@ pub use depth_fusion::{DepthFusionError, FusionParams, IntegrateStats, Tsdf};
 pub use export::ExportError;
 pub use mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
+pub use photo_consistency::{ItemBuffer, PhotoError, PhotoParams, PhotoView};
 pub use shadow_carving::{carve_shadows, ShadowCarveError, ShadowCarveParams, ShadowCarveStats, ShadowView};
 pub use shadows::{detect_shadows, ShadowError, ShadowMaps, ShadowParams};
 pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
 pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
+pub use voxel_coloring::{
+    carve_photo, color_voxels, colour_surface, reprojection_error, ColouredSurface, PhotoModel, PhotoStats,
+};
 
 /// Any error of the reconstruction layer, for callers that handle them alike (each keeps its cause).
 #[derive(Debug, thiserror::Error)]
@@ -54,4 +61,7 @@ pub enum PipelineError {
     /// A mask buffer has the wrong size.
     #[error("bad mask")]
     Mask(#[from] MaskSizeError),
+    /// Photo-consistency reconstruction failed.
+    #[error("photo-consistency reconstruction failed")]
+    Photo(#[from] PhotoError),
 }

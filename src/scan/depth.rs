@@ -216,6 +216,7 @@ pub fn run_depth_scan(
             volume_m3: truth.count() as f64 * voxel_volume,
             chamfer_m: chamfer.map(|c| c.symmetric_m),
             chamfer_rel: chamfer.filter(|_| diagonal > 0.0).map(|c| c.symmetric_m / diagonal),
+            colour_error: None,
         }
     });
     if let Some(gt) = &ground_truth {
@@ -247,7 +248,10 @@ pub fn run_depth_scan(
             containment: hull_overlap.map(|o| o.containment),
             voxels: hull_occ.count(),
             volume_m3: hull_occ.volume_m3(),
+            colour_error: None,
+            reprojection_error: None,
         }),
+        photo: None,
         shadow_carving: None,
         depth_fusion: None,
     };

@@ -4,6 +4,7 @@
 
 pub mod depth;
 pub mod output;
+pub mod photo;
 pub mod reconstruct;
 pub mod report;
 pub mod shadow;
@@ -74,6 +75,9 @@ pub enum ScanError {
     /// Surface extraction failed.
     #[error("surface extraction failed")]
     Mesh(#[source] MeshError),
+    /// Photo-consistency reconstruction failed.
+    #[error("photo-consistency reconstruction failed")]
+    Photo(#[source] crate::pipeline::PhotoError),
     /// The acquisition thread died.
     #[error("the acquisition thread panicked")]
     AcquisitionPanicked,
@@ -165,6 +169,8 @@ fn scan_into(
     let mut carver = SpaceCarver::new(grid).map_err(ScanError::Carve)?;
     let mut timings = Timings::default();
     let mut views: Vec<(CameraModel, Mask)> = Vec::with_capacity(config.scan.positions as usize);
+    // The photo-consistency methods need the images too.
+    let mut images: Vec<image::RgbImage> = Vec::new();
     let mut carve_one = |position: usize, angle_deg: f64, image: &image::RgbImage, timings: &mut Timings| {
         let t = Instant::now();
         let mask = extract_silhouette(image, &params);
@@ -174,6 +180,9 @@ fn scan_into(
         let stats = carver.add_view(&cam, &mask).map_err(ScanError::Carve)?;
         timings.carve += t.elapsed().as_secs_f64();
         views.push((cam, mask));
+        if recon.method.is_photo() {
+            images.push(image.clone());
+        }
         Ok::<ScanEvent, ScanError>(ScanEvent::ViewProcessed { position, occupied: stats.occupied })
     };
 
@@ -240,10 +249,32 @@ fn scan_into(
         (name, Occupancy::from_fn(grid, |p| scene.contains(&p)))
     });
     let carving_views: Vec<View<'_>> = views.iter().map(|(camera, mask)| View { camera: *camera, mask }).collect();
+    let photo = if recon.method.is_photo() {
+        events(ScanEvent::Stage("photo-consistency"));
+        let t = Instant::now();
+        let photo_views: Vec<crate::pipeline::PhotoView<'_>> = views
+            .iter()
+            .zip(&images)
+            .map(|((camera, mask), image)| crate::pipeline::PhotoView { camera: *camera, image, mask: Some(mask) })
+            .collect();
+        let colour_at = |p: &nalgebra::Vector3<f64>| sim.as_ref().map_or([0, 0, 0], |w| w.scene().colour_at(p));
+        let t_truth = truth.as_ref().map(|(_, occ)| photo::Truth { occupancy: occ, colour_at: &colour_at });
+        let result =
+            photo::reconstruct_photo(recon.method, &recon.photo, carver.occupancy(), &photo_views, t_truth.as_ref())
+                .map_err(ScanError::Photo)?;
+        timings.carve += t.elapsed().as_secs_f64();
+        Some(result)
+    } else {
+        None
+    };
+    let (photo_occupancy, photo_outputs) = match photo {
+        Some((occ, outputs)) => (Some(occ), Some(outputs)),
+        None => (None, None),
+    };
     let report = out.write_results(output::Results {
         source: config.rig.name.clone(),
         method: recon.method.name(),
-        occupancy: carver.occupancy(),
+        occupancy: photo_occupancy.as_ref().unwrap_or(carver.occupancy()),
         views: &carving_views,
         smooth_radius: recon.mesh.smooth_radius,
         truth: truth.as_ref().map(|(name, occ)| (name.as_str(), occ)),
@@ -251,6 +282,7 @@ fn scan_into(
         timings,
         started,
         events,
+        photo: photo_outputs,
     })?;
     Ok(report)
 }

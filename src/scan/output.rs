@@ -3,10 +3,10 @@
 //! ```text
 //! DIR/frames/pos_000.png ...   captured frames (scans only), written as they arrive
 //! DIR/frames/pos_000.json ...  how each frame was taken (angle, lights, sequence), written after it
-//! DIR/model.ply                binary PLY triangle mesh
+//! DIR/model.ply                binary PLY triangle mesh (vertex colours from the photo methods)
 //! DIR/model.stl                binary STL
 //! DIR/model.obj                OBJ
-//! DIR/voxels.ply               occupied voxel centres as a point cloud
+//! DIR/voxels.ply               occupied voxel centres as a point cloud (coloured by the photo methods)
 //! DIR/report.json              written last: a directory is a finished result iff it has one
 //! ```
 //! Every file is written atomically (temporary file, fsync, rename), so a crash or a full disk never
@@ -64,6 +64,8 @@ pub struct Results<'a> {
     pub started: Instant,
     /// Progress sink.
     pub events: &'a mut dyn FnMut(ScanEvent),
+    /// Colours and figures of the photo-consistency methods (`None` for space carving).
+    pub photo: Option<super::photo::PhotoOutputs>,
 }
 
 impl std::fmt::Debug for Results<'_> {
@@ -174,11 +176,25 @@ impl OutputDir {
 
     /// Mesh, export, evaluate, and write `report.json` last.
     pub fn write_results(&self, r: Results<'_>) -> Result<Report, ScanError> {
-        let Results { source, method, occupancy, views, smooth_radius, truth, frames, mut timings, started, events } =
-            r;
+        let Results {
+            source,
+            method,
+            occupancy,
+            views,
+            smooth_radius,
+            truth,
+            frames,
+            mut timings,
+            started,
+            events,
+            photo,
+        } = r;
         events(ScanEvent::Stage("mesh"));
         let t = Instant::now();
-        let mesh = extract_surface(occupancy, &MeshParams { smooth_radius }).map_err(ScanError::Mesh)?;
+        let mut mesh = extract_surface(occupancy, &MeshParams { smooth_radius }).map_err(ScanError::Mesh)?;
+        if let Some(p) = &photo {
+            mesh.colors = Some(p.mesh_colours(&mesh));
+        }
         timings.mesh = t.elapsed().as_secs_f64();
 
         events(ScanEvent::Stage("export"));
@@ -188,7 +204,8 @@ impl OutputDir {
         export::write_stl(&p("model.stl"), &mesh).map_err(ScanError::Export)?;
         export::write_obj(&p("model.obj"), &mesh).map_err(ScanError::Export)?;
         let centres = export::voxel_centres(occupancy);
-        export::write_ply_points(&p("voxels.ply"), &centres, None).map_err(ScanError::Export)?;
+        let voxel_colours = photo.as_ref().map(|ph| ph.voxel_colours(occupancy));
+        export::write_ply_points(&p("voxels.ply"), &centres, voxel_colours.as_ref()).map_err(ScanError::Export)?;
         timings.export = t.elapsed().as_secs_f64();
 
         events(ScanEvent::Stage("evaluate"));
@@ -209,6 +226,7 @@ impl OutputDir {
                 volume_m3: truth.count() as f64 * voxel_volume,
                 chamfer_m: None,
                 chamfer_rel: None,
+                colour_error: photo.as_ref().and_then(|p| p.colour_error),
             }
         });
         let mut files = vec!["model.ply".to_owned(), "model.stl".into(), "model.obj".into(), "voxels.ply".into()];
@@ -234,8 +252,9 @@ impl OutputDir {
             reprojection_iou_mean: mean,
             frames,
             ground_truth,
+            visual_hull: photo.as_ref().map(|p| p.visual_hull.clone()),
+            photo: photo.map(|p| p.report),
             files,
-            visual_hull: None,
             shadow_carving: None,
             depth_fusion: None,
         };

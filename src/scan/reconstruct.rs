@@ -28,6 +28,8 @@ pub struct ReconstructOptions {
     pub bbox: Option<Aabb>,
     /// Occupancy smoothing radius for the mesh, voxels.
     pub smooth_radius: u32,
+    /// The photo-consistency test (`voxel-coloring`, `space-carving-photo`).
+    pub photo: crate::config::PhotoConfig,
     /// Output directory.
     pub out: PathBuf,
 }
@@ -56,6 +58,15 @@ pub enum ReconstructError {
     /// Writing the results failed.
     #[error(transparent)]
     Output(#[from] ScanError),
+    /// Photo-consistency reconstruction failed.
+    #[error("photo-consistency reconstruction failed")]
+    Photo(#[source] crate::pipeline::PhotoError),
+    /// A photo-consistency method needs the images, and this view has none loaded.
+    #[error("view {name}: the photo-consistency methods need its image")]
+    NoImage {
+        /// The view's image name.
+        name: String,
+    },
 }
 
 /// Load the data set, carve, mesh and write the results into `opts.out`.
@@ -91,10 +102,26 @@ pub fn run_reconstruct(
     timings.carve = t.elapsed().as_secs_f64();
     tracing::info!(occupied = carver.occupancy().count(), carve_s = timings.carve, "carved");
 
+    let (photo_occupancy, photo) = if opts.method.is_photo() {
+        events(ScanEvent::Stage("photo-consistency"));
+        let t = Instant::now();
+        let mut photo_views = Vec::with_capacity(data.views.len());
+        for v in &data.views {
+            let image = v.image.as_ref().ok_or_else(|| ReconstructError::NoImage { name: v.name.clone() })?;
+            photo_views.push(crate::pipeline::PhotoView { camera: v.camera, image, mask: Some(&v.mask) });
+        }
+        let (occ, outputs) =
+            super::photo::reconstruct_photo(opts.method, &opts.photo, carver.occupancy(), &photo_views, None)
+                .map_err(ReconstructError::Photo)?;
+        timings.carve += t.elapsed().as_secs_f64();
+        (Some(occ), Some(outputs))
+    } else {
+        (None, None)
+    };
     let report = out.write_results(output::Results {
         source: opts.dataset.dir.display().to_string(),
         method: opts.method.name(),
-        occupancy: carver.occupancy(),
+        occupancy: photo_occupancy.as_ref().unwrap_or(carver.occupancy()),
         views: &views,
         smooth_radius: opts.smooth_radius,
         truth: None,
@@ -102,6 +129,7 @@ pub fn run_reconstruct(
         timings,
         started,
         events,
+        photo,
     })?;
     Ok(report)
 }
@@ -262,6 +290,38 @@ pub fn dataset_options(
         masks: masks.map_or(dataset::MaskSource::Extract(silhouette), dataset::MaskSource::Directory),
         load_images: false,
     }
+}
+
+/// Parse `threshold=T,min_cos=C,min_views=N,ncc=X,arc=DEG,iterations=I` (any subset, any order) over
+/// the defaults of `[reconstruction.photo]`.
+pub fn parse_photo(text: &str) -> Result<crate::config::PhotoConfig, &'static str> {
+    let mut c = crate::config::PhotoConfig::default();
+    for part in text.split(',').filter(|p| !p.trim().is_empty()) {
+        let (key, value) = part.split_once('=').ok_or("expected key=value pairs")?;
+        let num = || value.trim().parse::<f64>().map_err(|_| "a value is not a number");
+        match key.trim() {
+            "threshold" => c.threshold = num()?,
+            "min_cos" => c.min_cos = num()?,
+            "ncc" => c.min_ncc = Some(num()?),
+            "arc" => c.arc_deg = num()?,
+            "min_views" => c.min_views = value.trim().parse().map_err(|_| "min_views is not a count")?,
+            "iterations" => c.max_iterations = value.trim().parse().map_err(|_| "iterations is not a count")?,
+            _ => return Err("unknown key (known: threshold, min_cos, min_views, ncc, arc, iterations)"),
+        }
+    }
+    if !(c.threshold > 0.0 && c.threshold <= 255.0) {
+        return Err("threshold must be in (0, 255]");
+    }
+    if !(-1.0..=1.0).contains(&c.min_cos) || c.min_ncc.is_some_and(|n| !(-1.0..=1.0).contains(&n)) {
+        return Err("min_cos and ncc must be in [-1, 1]");
+    }
+    if c.min_views < 2 {
+        return Err("min_views must be at least 2");
+    }
+    if !(c.arc_deg > 0.0 && c.arc_deg < 180.0) {
+        return Err("arc must be in (0, 180) degrees");
+    }
+    Ok(c)
 }
 
 #[cfg(test)]

@@ -37,9 +37,13 @@ pub struct Report {
     /// Comparison with the simulated scene (simulated rigs only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ground_truth: Option<GroundTruth>,
+    /// What the photo-consistency methods did.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub photo: Option<PhotoReport>,
     /// Files written, relative to the output directory.
     pub files: Vec<String>,
-    /// The visual hull a refining method (shadow carving) started from.
+    /// The visual hull a refining method (shadow carving, photo-consistency) started from, measured
+    /// like the result.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub visual_hull: Option<VisualHull>,
     /// What shadow carving did (method `shadow-carving` only).
@@ -63,6 +67,40 @@ pub struct VisualHull {
     pub voxels: u64,
     /// Volume, cubic metres.
     pub volume_m3: f64,
+    /// Mean absolute colour error per channel (0..255) of the hull's surface voxels coloured the same
+    /// way as the result, against the true surface colour (photo-consistency methods, simulated rigs).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub colour_error: Option<f64>,
+    /// Photometric re-projection error of the hull coloured the same way, mean absolute difference
+    /// per channel (0..255) over silhouette-or-model pixels of every view (photo-consistency methods).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reprojection_error: Option<f64>,
+}
+
+/// Photo-consistency details of a `voxel-coloring` or `space-carving-photo` run.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct PhotoReport {
+    /// Colour standard deviation threshold, 8-bit levels.
+    pub threshold: f64,
+    /// NCC threshold, if the NCC test was on.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub min_ncc: Option<f64>,
+    /// Views used.
+    pub views: usize,
+    /// Iterations (space carving) or layers (voxel colouring).
+    pub iterations: usize,
+    /// Voxel visits.
+    pub visits: u64,
+    /// Voxels carved by photo-consistency (beyond the hull).
+    pub carved: u64,
+    /// Seconds spent carving and colouring.
+    pub seconds: f64,
+    /// Surface voxels of the result.
+    pub surface_voxels: usize,
+    /// Surface voxels some view sees (the ones with a measured colour).
+    pub seen_surface_voxels: usize,
+    /// Photometric re-projection error of the coloured result (see [`VisualHullReport`]).
+    pub reprojection_error: f64,
 }
 
 /// Stage timings, seconds of wall-clock time. Stages overlap in a scan (the pipeline runs while the
@@ -104,4 +142,10 @@ pub struct GroundTruth {
     /// `chamfer_m` over the scene's bounding-box diagonal.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub chamfer_rel: Option<f64>,
+    /// Mean absolute colour error per channel (0..255) of the result's seen surface voxels that lie
+    /// next to the true surface (a truly occupied and a truly empty voxel among their 26 neighbours
+    /// and themselves) against the scene's true surface colour (reflectance) at their centres
+    /// (photo-consistency methods only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub colour_error: Option<f64>,
 }

@@ -237,6 +237,8 @@ pub fn run_shadow_scan(
         containment: hull_overlap.map(|o| o.containment),
         voxels: hull.count(),
         volume_m3: hull.volume_m3(),
+        colour_error: None,
+        reprojection_error: None,
     };
     let carving_views: Vec<crate::pipeline::View<'_>> =
         views.iter().map(|(camera, mask)| crate::pipeline::View { camera: *camera, mask }).collect();
@@ -248,6 +250,7 @@ pub fn run_shadow_scan(
         smooth_radius: recon.mesh.smooth_radius,
         truth: truth.as_ref().map(|(name, occ)| (name.as_str(), occ)),
         frames: Some(summary),
+        photo: None,
         timings,
         started,
         events,

@@ -1,0 +1,534 @@
+//! Photo-consistency of voxels: footprints, per-view item buffers and the consistency tests shared by
+//! voxel colouring and generalized space carving ([`super::voxel_coloring`]).
+//!
+//! # Footprint
+//! A voxel's footprint in a view is the set of pixels whose centres fall inside the bounding rectangle
+//! of its eight projected corners (at least the pixel its centre falls in). A voxel with a corner
+//! behind the camera (camera-frame `z <= 0`) has no footprint in that view. Projection uses the full
+//! camera model (pinhole, skew, two-term radial distortion) in `f32`.
+//!
+//! # Visibility
+//! An [`ItemBuffer`] holds, per pixel of a view, the nearest (smallest camera depth of the voxel
+//! centre) surface voxel whose footprint covers the pixel. A voxel is *visible* in a pixel of its
+//! footprint iff the item buffer names it there, so occluded views and occluded parts of footprints
+//! are never consulted. Pixels outside the view's silhouette (when a mask is given) are not sampled.
+//!
+//! # Consistency
+//! For each view in which the voxel is visible (and which faces the voxel's estimated outward normal
+//! with a cosine of at least `min_cos`), the mean colour of its visible footprint pixels is taken.
+//! - **Colour standard deviation**: the count-weighted standard deviation of those per-view means,
+//!   RMS over the three channels, in 8-bit levels (0..255), must not exceed `threshold`. Using the
+//!   per-view means (not every pixel pooled) keeps a voxel on a texture edge consistent: every view
+//!   sees the same mix of the two colours, while pooled pixels would vary by the texture's contrast.
+//! - **Normalised cross-correlation** (optional, `min_ncc`): the eight sub-voxel points at ±¼ voxel
+//!   are projected into each view in which all of them are visible; each view's 24 values (8 points ×
+//!   RGB) are correlated with the mean over those views. When the mean pattern has a standard
+//!   deviation above [`NCC_MIN_SIGMA`] levels (a textured patch), the mean correlation must reach
+//!   `min_ncc`; flat patches are left to the standard deviation test.
+//!
+//! Fewer than `min_views` views seeing a voxel leave it undecided: it is kept (consistent).
+//!
+//! The test assumes Lambertian surfaces under lighting that changes little between views: shading
+//! differences between views count as colour differences, so `threshold` must exceed them.
+
+use image::RgbImage;
+use rayon::prelude::*;
+
+use super::silhouette::Mask;
+use crate::geometry::{CameraModel, VoxelGrid};
+
+/// A calibrated colour view: a camera (in the grid's frame), its image and optionally its silhouette.
+#[derive(Debug, Clone, Copy)]
+pub struct PhotoView<'a> {
+    /// The camera, in the grid's frame.
+    pub camera: CameraModel,
+    /// The image; must be the camera's image size.
+    pub image: &'a RgbImage,
+    /// The silhouette; pixels outside it are never sampled. Must be the camera's image size.
+    pub mask: Option<&'a Mask>,
+}
+
+/// Parameters of the photo-consistency test and of the carving loops.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PhotoParams {
+    /// Largest colour standard deviation between views of a consistent voxel, 8-bit levels (0..255).
+    pub threshold: f32,
+    /// Smallest mean normalised cross-correlation of a textured consistent voxel (-1..1); `None` skips
+    /// the test.
+    pub min_ncc: Option<f32>,
+    /// Views needed to judge a voxel (at least 2); fewer leave it kept.
+    pub min_views: usize,
+    /// Views whose direction makes a cosine below this with the voxel's estimated outward normal are
+    /// not consulted (grazing views mix neighbouring surfaces); -1 consults every view.
+    pub min_cos: f32,
+    /// Cap on generalized space carving iterations (each visits every surface voxel once).
+    pub max_iterations: usize,
+}
+
+impl Default for PhotoParams {
+    fn default() -> Self {
+        PhotoParams { threshold: 18.0, min_ncc: None, min_views: 2, min_cos: 0.2, max_iterations: 500 }
+    }
+}
+
+/// Standard deviation (8-bit levels) below which a patch counts as untextured for the NCC test.
+pub const NCC_MIN_SIGMA: f32 = 6.0;
+
+/// Colour of surface voxels no view sees.
+pub const UNSEEN_COLOUR: [u8; 3] = [128, 128, 128];
+
+/// Errors of photo-consistency reconstruction.
+#[derive(Debug, thiserror::Error)]
+pub enum PhotoError {
+    /// The grid has no voxels or an unusable voxel size.
+    #[error("the voxel grid is unusable: dims {dims:?}, voxel size {voxel_size} m")]
+    BadGrid {
+        /// Voxels along x, y, z.
+        dims: [usize; 3],
+        /// Voxel edge, metres.
+        voxel_size: f64,
+    },
+    /// A view's image or mask is not the camera's image size.
+    #[error("view {view}: image or mask size differs from the camera's {width}x{height} px")]
+    ImageSize {
+        /// Index of the view.
+        view: usize,
+        /// Camera width, px.
+        width: u32,
+        /// Camera height, px.
+        height: u32,
+    },
+    /// A camera has non-finite parameters.
+    #[error("view {view}: the camera has non-finite parameters")]
+    BadCamera {
+        /// Index of the view.
+        view: usize,
+    },
+    /// Parameters out of range.
+    #[error("photo-consistency parameters out of range: {what}")]
+    BadParams {
+        /// Which one.
+        what: &'static str,
+    },
+    /// Voxel colouring needs every camera on the near side of a plane in front of the volume.
+    #[error("no ordinal visibility order: camera {view} is not in front of the working volume along the sweep direction {direction:?}")]
+    NoOrdinalOrder {
+        /// The first camera that breaks the order.
+        view: usize,
+        /// The sweep direction tried (unit vector, grid frame).
+        direction: [f64; 3],
+    },
+}
+
+pub(crate) fn check_inputs(grid: &VoxelGrid, views: &[PhotoView<'_>], params: &PhotoParams) -> Result<(), PhotoError> {
+    if grid.is_empty() || !(grid.voxel_size.is_finite() && grid.voxel_size > 0.0) {
+        return Err(PhotoError::BadGrid { dims: grid.dims, voxel_size: grid.voxel_size });
+    }
+    if !(params.threshold.is_finite() && params.threshold > 0.0) {
+        return Err(PhotoError::BadParams { what: "threshold must be positive" });
+    }
+    if params.min_views < 2 {
+        return Err(PhotoError::BadParams { what: "min_views must be at least 2" });
+    }
+    if !(-1.0..=1.0).contains(&params.min_cos) {
+        return Err(PhotoError::BadParams { what: "min_cos must be in -1..1" });
+    }
+    if params.min_ncc.is_some_and(|n| !(-1.0..=1.0).contains(&n)) {
+        return Err(PhotoError::BadParams { what: "min_ncc must be in -1..1" });
+    }
+    for (n, v) in views.iter().enumerate() {
+        let c = &v.camera;
+        let size = (c.width, c.height);
+        if v.image.dimensions() != size || v.mask.is_some_and(|m| (m.width(), m.height()) != size) {
+            return Err(PhotoError::ImageSize { view: n, width: c.width, height: c.height });
+        }
+        let i = &c.intrinsics;
+        let finite = [i.fx, i.fy, i.cx, i.cy, i.skew, i.k1, i.k2].iter().all(|x| x.is_finite())
+            && c.pose.rotation.iter().all(|x| x.is_finite())
+            && c.pose.translation.iter().all(|x| x.is_finite());
+        if !finite {
+            return Err(PhotoError::BadCamera { view: n });
+        }
+    }
+    Ok(())
+}
+
+/// A camera prepared for projecting voxels of one grid (`f32`, see the module docs).
+#[derive(Debug, Clone)]
+pub(crate) struct VoxelCamera {
+    r: [[f32; 3]; 3],
+    t: [f32; 3],
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    skew: f32,
+    k1: f32,
+    k2: f32,
+    pub(crate) width: usize,
+    pub(crate) height: usize,
+    /// Camera centre, grid frame, metres.
+    pub(crate) centre: [f32; 3],
+    origin: [f32; 3],
+    size: f32,
+}
+
+/// A footprint: the voxel centre's camera depth (metres) and the pixel rectangle `[x0, x1) x [y0, y1)`.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Footprint {
+    pub(crate) depth: f32,
+    pub(crate) x0: usize,
+    pub(crate) x1: usize,
+    pub(crate) y0: usize,
+    pub(crate) y1: usize,
+}
+
+impl VoxelCamera {
+    pub(crate) fn new(camera: &CameraModel, grid: &VoxelGrid) -> VoxelCamera {
+        let rot = &camera.pose.rotation;
+        let r = [0, 1, 2].map(|a| [0, 1, 2].map(|b| rot[(a, b)] as f32));
+        let t = [0, 1, 2].map(|a| camera.pose.translation[a] as f32);
+        let c = camera.centre();
+        let i = &camera.intrinsics;
+        VoxelCamera {
+            r,
+            t,
+            fx: i.fx as f32,
+            fy: i.fy as f32,
+            cx: i.cx as f32,
+            cy: i.cy as f32,
+            skew: i.skew as f32,
+            k1: i.k1 as f32,
+            k2: i.k2 as f32,
+            width: camera.width as usize,
+            height: camera.height as usize,
+            centre: [c.x as f32, c.y as f32, c.z as f32],
+            origin: grid.origin.map(|x| x as f32),
+            size: grid.voxel_size as f32,
+        }
+    }
+
+    /// Centre of voxel `v` at fractional offset `f` (voxel units, 0 = centre), grid frame, metres.
+    #[inline]
+    pub(crate) fn point(&self, v: [u32; 3], f: [f32; 3]) -> [f32; 3] {
+        [0, 1, 2].map(|a| self.origin[a] + (v[a] as f32 + 0.5 + f[a]) * self.size)
+    }
+
+    /// Camera depth and continuous pixel coordinates of grid-frame point `p`.
+    #[inline]
+    pub(crate) fn project(&self, p: [f32; 3]) -> (f32, f32, f32) {
+        let c = [0, 1, 2].map(|a| self.r[a][0] * p[0] + self.r[a][1] * p[1] + self.r[a][2] * p[2] + self.t[a]);
+        let (x, y) = (c[0] / c[2], c[1] / c[2]);
+        let r2 = x * x + y * y;
+        let f = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
+        let (xd, yd) = (x * f, y * f);
+        (c[2], self.fx * xd + self.skew * yd + self.cx, self.fy * yd + self.cy)
+    }
+
+    /// The pixel a continuous image point falls in, if inside the image.
+    #[inline]
+    pub(crate) fn pixel(&self, u: f32, v: f32) -> Option<(usize, usize)> {
+        (u >= 0.0 && v >= 0.0 && u < self.width as f32 && v < self.height as f32).then_some((u as usize, v as usize))
+    }
+
+    /// The footprint of voxel `v` (see the module docs); `None` when a corner is behind the camera or
+    /// the footprint misses the image.
+    pub(crate) fn footprint(&self, v: [u32; 3]) -> Option<Footprint> {
+        let (depth, uc, vc) = self.project(self.point(v, [0.0; 3]));
+        let (mut u0, mut u1, mut v0, mut v1) = (uc, uc, vc, vc);
+        for corner in 0..8 {
+            let f = [0, 1, 2].map(|a| if corner >> a & 1 == 1 { 0.5 } else { -0.5 });
+            let (z, u, w) = self.project(self.point(v, f));
+            if z.is_nan() || z <= 0.0 {
+                return None;
+            }
+            u0 = u0.min(u);
+            u1 = u1.max(u);
+            v0 = v0.min(w);
+            v1 = v1.max(w);
+        }
+        let on_image = u1 >= 0.0 && v1 >= 0.0 && u0 < self.width as f32 && v0 < self.height as f32;
+        if depth.is_nan() || depth <= 0.0 || !on_image {
+            return None;
+        }
+        // Pixels whose centre x + 0.5 lies in [u0, u1].
+        let range = |lo: f32, hi: f32, c: f32, n: usize| {
+            let a = (lo - 0.5).ceil().max(0.0);
+            let b = ((hi - 0.5).floor() + 1.0).min(n as f32);
+            if a < b {
+                (a as usize, b as usize)
+            } else {
+                let p = c.floor().clamp(0.0, n as f32 - 1.0) as usize;
+                (p, p + 1)
+            }
+        };
+        let (x0, x1) = range(u0, u1, uc, self.width);
+        let (y0, y1) = range(v0, v1, vc, self.height);
+        Some(Footprint { depth, x0, x1, y0, y1 })
+    }
+}
+
+/// Per pixel of one view, the nearest surface voxel covering it (by index into a voxel list).
+#[derive(Debug, Clone)]
+pub struct ItemBuffer {
+    width: usize,
+    depth: Vec<f32>,
+    id: Vec<u32>,
+}
+
+impl ItemBuffer {
+    /// No voxel.
+    pub const NONE: u32 = u32::MAX;
+
+    /// The voxel (index into the list it was rendered from) nearest in pixel `(x, y)`, or [`Self::NONE`].
+    pub fn get(&self, x: usize, y: usize) -> u32 {
+        self.id.get(y * self.width + x).copied().unwrap_or(Self::NONE)
+    }
+
+    pub(crate) fn render(cam: &VoxelCamera, voxels: &[[u32; 3]]) -> ItemBuffer {
+        let n = cam.width * cam.height;
+        let mut buf = ItemBuffer { width: cam.width, depth: vec![f32::INFINITY; n], id: vec![Self::NONE; n] };
+        for (idx, &v) in voxels.iter().enumerate() {
+            let Some(fp) = cam.footprint(v) else { continue };
+            for y in fp.y0..fp.y1 {
+                let row = y * cam.width;
+                for x in fp.x0..fp.x1 {
+                    let p = row + x;
+                    if fp.depth < buf.depth[p] {
+                        buf.depth[p] = fp.depth;
+                        buf.id[p] = idx as u32;
+                    }
+                }
+            }
+        }
+        buf
+    }
+}
+
+/// Render item buffers of `voxels` for every camera, in parallel.
+pub(crate) fn render_item_buffers(cams: &[VoxelCamera], voxels: &[[u32; 3]]) -> Vec<ItemBuffer> {
+    cams.par_iter().map(|c| ItemBuffer::render(c, voxels)).collect()
+}
+
+/// One view's visible samples of a voxel.
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct ViewSample {
+    pub(crate) count: u32,
+    /// Mean colour, 8-bit levels.
+    pub(crate) mean: [f32; 3],
+    /// Cosine between the voxel's normal and the direction to the camera (1 without a normal).
+    pub(crate) cos: f32,
+}
+
+/// Outward normal estimate of voxel `v`: the normalised sum of the offsets to its empty
+/// 26-neighbours (out-of-grid counts as empty). Zero when it has none or they cancel.
+pub(crate) fn normal_estimate(occupied: &dyn Fn(i64, i64, i64) -> bool, v: [u32; 3]) -> [f32; 3] {
+    let mut n = [0f32; 3];
+    for dz in -1i64..=1 {
+        for dy in -1i64..=1 {
+            for dx in -1i64..=1 {
+                if (dx, dy, dz) != (0, 0, 0) && !occupied(v[0] as i64 + dx, v[1] as i64 + dy, v[2] as i64 + dz) {
+                    n[0] += dx as f32;
+                    n[1] += dy as f32;
+                    n[2] += dz as f32;
+                }
+            }
+        }
+    }
+    let l = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+    if l > 1e-6 {
+        n.map(|x| x / l)
+    } else {
+        [0.0; 3]
+    }
+}
+
+/// Cosine between `normal` and the direction from voxel centre `p` to `cam`'s centre (1 without a normal).
+pub(crate) fn facing(cam: &VoxelCamera, p: [f32; 3], normal: [f32; 3]) -> f32 {
+    if normal == [0.0; 3] {
+        return 1.0;
+    }
+    let d = [0, 1, 2].map(|a| cam.centre[a] - p[a]);
+    let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-12);
+    (d[0] * normal[0] + d[1] * normal[1] + d[2] * normal[2]) / l
+}
+
+/// Mean colour of the footprint pixels of `v` in a view for which `visible(x, y)` holds (and inside
+/// the mask), with the pixel rectangle used.
+pub(crate) fn sample_view(
+    cam: &VoxelCamera,
+    view: &PhotoView<'_>,
+    fp: &Footprint,
+    visible: impl Fn(usize, usize) -> bool,
+) -> (u32, [f32; 3]) {
+    let img = view.image.as_raw();
+    let mut sum = [0u32; 3];
+    let mut count = 0u32;
+    for y in fp.y0..fp.y1 {
+        for x in fp.x0..fp.x1 {
+            if !visible(x, y) || view.mask.is_some_and(|m| !m.get(x as u32, y as u32)) {
+                continue;
+            }
+            let p = 3 * (y * cam.width + x);
+            if let Some(px) = img.get(p..p + 3) {
+                for c in 0..3 {
+                    sum[c] += px[c] as u32;
+                }
+                count += 1;
+            }
+        }
+    }
+    if count == 0 {
+        (0, [0.0; 3])
+    } else {
+        (count, sum.map(|s| s as f32 / count as f32))
+    }
+}
+
+/// Count-weighted standard deviation of per-view mean colours, RMS over channels, 8-bit levels.
+pub(crate) fn colour_spread(samples: &[ViewSample]) -> f32 {
+    let total: f32 = samples.iter().map(|s| s.count as f32).sum();
+    if total <= 0.0 {
+        return 0.0;
+    }
+    let mut var = 0f32;
+    for c in 0..3 {
+        let mean = samples.iter().map(|s| s.count as f32 * s.mean[c]).sum::<f32>() / total;
+        var += samples.iter().map(|s| s.count as f32 * (s.mean[c] - mean).powi(2)).sum::<f32>() / total;
+    }
+    (var / 3.0).sqrt()
+}
+
+/// Mean NCC of each view's pattern with the mean pattern; `None` when fewer than two patterns or the
+/// mean pattern is untextured (see [`NCC_MIN_SIGMA`]).
+pub(crate) fn mean_ncc(patterns: &[[f32; 24]]) -> Option<f32> {
+    if patterns.len() < 2 {
+        return None;
+    }
+    let mut mean = [0f32; 24];
+    for p in patterns {
+        for (m, x) in mean.iter_mut().zip(p) {
+            *m += x / patterns.len() as f32;
+        }
+    }
+    let centred = |p: &[f32; 24]| {
+        let mu = p.iter().sum::<f32>() / 24.0;
+        p.map(|x| x - mu)
+    };
+    let m = centred(&mean);
+    let mnorm = m.iter().map(|x| x * x).sum::<f32>().sqrt();
+    if mnorm / 24f32.sqrt() < NCC_MIN_SIGMA {
+        return None;
+    }
+    let mut acc = 0f32;
+    for p in patterns {
+        let q = centred(p);
+        let qn = q.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-6);
+        acc += q.iter().zip(&m).map(|(a, b)| a * b).sum::<f32>() / (qn * mnorm);
+    }
+    Some(acc / patterns.len() as f32)
+}
+
+/// The 24-value pattern (8 sub-voxel points × RGB) of voxel `v` in a view, if every point is visible.
+pub(crate) fn ncc_pattern(
+    cam: &VoxelCamera,
+    view: &PhotoView<'_>,
+    v: [u32; 3],
+    visible: impl Fn(usize, usize) -> bool,
+) -> Option<[f32; 24]> {
+    let mut out = [0f32; 24];
+    for s in 0..8 {
+        let f = [0, 1, 2].map(|a| if s >> a & 1 == 1 { 0.25 } else { -0.25 });
+        let (z, u, w) = cam.project(cam.point(v, f));
+        if z.is_nan() || z <= 0.0 {
+            return None;
+        }
+        let (x, y) = cam.pixel(u, w)?;
+        if !visible(x, y) {
+            return None;
+        }
+        let px = view.image.get_pixel(x as u32, y as u32).0;
+        for c in 0..3 {
+            out[3 * s + c] = px[c] as f32;
+        }
+    }
+    Some(out)
+}
+
+/// The verdict on one voxel from its per-view samples (views below `min_cos` already removed) and
+/// NCC patterns: `true` = consistent (or undecided).
+pub(crate) fn is_consistent(samples: &[ViewSample], patterns: &[[f32; 24]], params: &PhotoParams) -> bool {
+    if samples.len() < params.min_views {
+        return true;
+    }
+    if colour_spread(samples) > params.threshold {
+        return false;
+    }
+    match (params.min_ncc, mean_ncc(patterns)) {
+        (Some(min), Some(ncc)) => ncc >= min,
+        _ => true,
+    }
+}
+
+/// The colour of a voxel from its per-view samples: the count-weighted mean over the views that face
+/// it best (cosine within 0.15 of the best one); [`UNSEEN_COLOUR`] without samples.
+pub(crate) fn best_colour(samples: &[ViewSample]) -> [u8; 3] {
+    let best = samples.iter().map(|s| s.cos).fold(f32::NEG_INFINITY, f32::max);
+    let mut acc = [0f32; 3];
+    let mut n = 0f32;
+    for s in samples.iter().filter(|s| s.cos >= best - 0.15) {
+        for (a, m) in acc.iter_mut().zip(&s.mean) {
+            *a += s.count as f32 * m;
+        }
+        n += s.count as f32;
+    }
+    if n > 0.0 {
+        acc.map(|x| (x / n).round().clamp(0.0, 255.0) as u8)
+    } else {
+        UNSEEN_COLOUR
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn s(count: u32, mean: [f32; 3], cos: f32) -> ViewSample {
+        ViewSample { count, mean, cos }
+    }
+
+    #[test]
+    fn spread_is_zero_for_equal_means_and_grows_with_disagreement() {
+        assert_eq!(colour_spread(&[s(4, [100.0; 3], 1.0), s(2, [100.0; 3], 1.0)]), 0.0);
+        let d = colour_spread(&[s(1, [90.0; 3], 1.0), s(1, [110.0; 3], 1.0)]);
+        assert!((d - 10.0).abs() < 1e-4, "{d}");
+        let p = PhotoParams::default();
+        assert!(is_consistent(&[s(1, [90.0; 3], 1.0), s(1, [110.0; 3], 1.0)], &[], &p));
+        assert!(!is_consistent(&[s(1, [50.0; 3], 1.0), s(1, [150.0; 3], 1.0)], &[], &p));
+        // One view cannot judge.
+        assert!(is_consistent(&[s(1, [50.0; 3], 1.0)], &[], &p));
+    }
+
+    #[test]
+    fn ncc_separates_matching_and_mismatched_patterns() {
+        let mut a = [0f32; 24];
+        for (n, x) in a.iter_mut().enumerate() {
+            *x = if n % 6 < 3 { 200.0 } else { 40.0 };
+        }
+        let brighter = a.map(|x| x * 1.2 + 5.0);
+        let ncc = mean_ncc(&[a, brighter]).expect("textured");
+        assert!(ncc > 0.99, "{ncc}");
+        let inverted = a.map(|x| 240.0 - x);
+        let third = a.map(|x| x * 0.9);
+        let ncc = mean_ncc(&[a, inverted, third]).expect("textured");
+        assert!(ncc < 0.9, "{ncc}");
+        assert!(mean_ncc(&[[50.0; 24], [51.0; 24]]).is_none());
+    }
+
+    #[test]
+    fn best_colour_prefers_facing_views() {
+        let c = best_colour(&[s(3, [200.0, 10.0, 10.0], 0.95), s(3, [10.0, 10.0, 200.0], 0.3)]);
+        assert_eq!(c, [200, 10, 10]);
+        assert_eq!(best_colour(&[]), UNSEEN_COLOUR);
+    }
+}

@@ -1,0 +1,531 @@
+//! Shape and colour from photo-consistency: voxel colouring with the ordinal visibility constraint
+//! (Seitz & Dyer 1999) and generalized space carving (Kutulakos & Seitz 2000), both starting from a
+//! given occupancy (the visual hull when silhouettes exist, else a full grid). The consistency test,
+//! footprints and item buffers are in [`super::photo_consistency`].
+//!
+//! # Generalized space carving ([`carve_photo`])
+//! Any camera placement. Each iteration takes the current surface (occupied voxels with an empty
+//! face neighbour), renders an item buffer of it per view, and tests every surface voxel once against
+//! the views that see it; the inconsistent ones are carved together. Iterations repeat until one
+//! carves nothing (or `max_iterations`). Carving only ever removes voxels and a voxel judged
+//! consistent is only re-judged when its visibility may have changed, so the result is a superset of
+//! the photo hull's voxels under the test. Cost: O(surface voxels × views) per iteration, and the
+//! number of iterations is bounded by the depth carved (at most N for an N³ grid): O(L N³) at worst.
+//! Unlike the paper's six-direction plane sweeps, visibility is recomputed for the whole surface
+//! every iteration, which needs no per-sweep camera partition and reaches the same fixed point.
+//!
+//! # Voxel colouring ([`color_voxels`])
+//! Cameras all on the near side of a plane in front of the volume: the sweep direction `d` is the
+//! unit vector from the cameras' mean centre to the grid's centre, and every camera centre `c` must
+//! satisfy `d·c < min over the volume of d·x` (else [`PhotoError::NoOrdinalOrder`]). Then an occluder
+//! always has a smaller `d·x` than what it hides, so voxels are visited once, in layers of increasing
+//! `d·x` (one voxel thick). A voxel is judged on the pixels of its footprint not yet claimed by a
+//! kept voxel of an earlier layer; a consistent voxel claims its footprint when its layer is done,
+//! an inconsistent one is carved, and a voxel no longer seen by any view is kept unjudged (the
+//! interior). Cost: O(voxels × views), one visit each.
+//!
+//! # Colours
+//! [`colour_surface`] colours the surface voxels of an occupancy from the views that see them (item
+//! buffers), each from the views facing it best. [`reprojection_error`] renders such a coloured
+//! surface back into the views and measures the photometric error against the images.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use super::occupancy::Occupancy;
+use super::photo_consistency::{
+    best_colour, check_inputs, facing, is_consistent, ncc_pattern, normal_estimate, render_item_buffers, sample_view,
+    ItemBuffer, PhotoError, PhotoParams, PhotoView, ViewSample, VoxelCamera,
+};
+use crate::geometry::VoxelGrid;
+
+/// Surface voxels with colours.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ColouredSurface {
+    /// Surface voxel indices `(i, j, k)`: occupied with an empty or out-of-grid face neighbour.
+    pub voxels: Vec<[u32; 3]>,
+    /// Their colours, 8-bit RGB ([`super::photo_consistency::UNSEEN_COLOUR`] when no view sees them).
+    pub colours: Vec<[u8; 3]>,
+    /// Whether some view sees each voxel.
+    pub seen: Vec<bool>,
+}
+
+/// What a photo-consistency reconstruction did.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct PhotoStats {
+    /// Iterations (generalized space carving) or layers (voxel colouring).
+    pub iterations: usize,
+    /// Voxels judged (visits).
+    pub visits: u64,
+    /// Voxels carved.
+    pub carved: u64,
+    /// Wall-clock time, seconds.
+    pub seconds: f64,
+}
+
+/// The result: occupancy and coloured surface.
+#[derive(Debug, Clone)]
+pub struct PhotoModel {
+    /// The carved occupancy.
+    pub occupancy: Occupancy,
+    /// Its coloured surface.
+    pub surface: ColouredSurface,
+    /// Counters.
+    pub stats: PhotoStats,
+}
+
+/// A dense byte occupancy for carving in place.
+struct Dense {
+    dims: [usize; 3],
+    bits: Vec<u8>,
+}
+
+impl Dense {
+    fn from(occ: &Occupancy) -> Dense {
+        let dims = occ.grid().dims;
+        let mut bits = vec![0u8; dims[0] * dims[1] * dims[2]];
+        occ.for_each_occupied(|i, j, k| bits[i + dims[0] * (j + dims[1] * k)] = 1);
+        Dense { dims, bits }
+    }
+
+    #[inline]
+    fn get(&self, i: i64, j: i64, k: i64) -> bool {
+        let d = self.dims;
+        if i < 0 || j < 0 || k < 0 || i >= d[0] as i64 || j >= d[1] as i64 || k >= d[2] as i64 {
+            return false;
+        }
+        self.bits[i as usize + d[0] * (j as usize + d[1] * k as usize)] != 0
+    }
+
+    fn clear(&mut self, v: [u32; 3]) {
+        let d = self.dims;
+        self.bits[v[0] as usize + d[0] * (v[1] as usize + d[1] * v[2] as usize)] = 0;
+    }
+
+    fn surface(&self) -> Vec<[u32; 3]> {
+        let d = self.dims;
+        (0..d[2])
+            .into_par_iter()
+            .flat_map_iter(|k| {
+                let mut out = Vec::new();
+                for j in 0..d[1] {
+                    for i in 0..d[0] {
+                        let (a, b, c) = (i as i64, j as i64, k as i64);
+                        if self.get(a, b, c)
+                            && !(self.get(a - 1, b, c)
+                                && self.get(a + 1, b, c)
+                                && self.get(a, b - 1, c)
+                                && self.get(a, b + 1, c)
+                                && self.get(a, b, c - 1)
+                                && self.get(a, b, c + 1))
+                        {
+                            out.push([i as u32, j as u32, k as u32]);
+                        }
+                    }
+                }
+                out
+            })
+            .collect()
+    }
+
+    fn to_occupancy(&self, grid: VoxelGrid) -> Occupancy {
+        Occupancy::from_index_fn(grid, |i, j, k| self.get(i as i64, j as i64, k as i64))
+    }
+}
+
+#[allow(clippy::too_many_arguments)] // the loop state of one voxel's visit, kept as plain arguments
+/// Per-view samples of surface voxel `idx` under item buffers (views facing below `min_cos` dropped),
+/// and NCC patterns when asked for.
+fn gather(
+    cams: &[VoxelCamera],
+    views: &[PhotoView<'_>],
+    buffers: &[ItemBuffer],
+    v: [u32; 3],
+    idx: u32,
+    normal: [f32; 3],
+    params: &PhotoParams,
+    want_ncc: bool,
+) -> (Vec<ViewSample>, Vec<[f32; 24]>) {
+    let mut samples = Vec::new();
+    let mut patterns = Vec::new();
+    for ((cam, view), buf) in cams.iter().zip(views).zip(buffers) {
+        let cos = facing(cam, cam.point(v, [0.0; 3]), normal);
+        if cos < params.min_cos {
+            continue;
+        }
+        let Some(fp) = cam.footprint(v) else { continue };
+        let visible = |x: usize, y: usize| buf.get(x, y) == idx;
+        let (count, mean) = sample_view(cam, view, &fp, visible);
+        if count > 0 {
+            samples.push(ViewSample { count, mean, cos });
+            if want_ncc {
+                if let Some(p) = ncc_pattern(cam, view, v, visible) {
+                    patterns.push(p);
+                }
+            }
+        }
+    }
+    (samples, patterns)
+}
+
+/// Generalized space carving from `start` (see the module docs).
+pub fn carve_photo(start: &Occupancy, views: &[PhotoView<'_>], params: &PhotoParams) -> Result<PhotoModel, PhotoError> {
+    let t = Instant::now();
+    let grid = *start.grid();
+    check_inputs(&grid, views, params)?;
+    let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let mut dense = Dense::from(start);
+    let mut stats = PhotoStats::default();
+    while stats.iterations < params.max_iterations {
+        stats.iterations += 1;
+        let surface = dense.surface();
+        let buffers = render_item_buffers(&cams, &surface);
+        let occ = |i, j, k| dense.get(i, j, k);
+        let carve: Vec<[u32; 3]> = surface
+            .par_iter()
+            .enumerate()
+            .filter_map(|(idx, &v)| {
+                let normal = normal_estimate(&occ, v);
+                let (samples, patterns) =
+                    gather(&cams, views, &buffers, v, idx as u32, normal, params, params.min_ncc.is_some());
+                (!is_consistent(&samples, &patterns, params)).then_some(v)
+            })
+            .collect();
+        stats.visits += surface.len() as u64;
+        tracing::debug!(iteration = stats.iterations, surface = surface.len(), carved = carve.len(), "photo carving");
+        if carve.is_empty() {
+            break;
+        }
+        stats.carved += carve.len() as u64;
+        for v in carve {
+            dense.clear(v);
+        }
+    }
+    let occupancy = dense.to_occupancy(grid);
+    let surface = colour_dense(&dense, &cams, views, params);
+    stats.seconds = t.elapsed().as_secs_f64();
+    Ok(PhotoModel { occupancy, surface, stats })
+}
+
+/// The voxel colouring sweep direction for these cameras, checked against the ordinal visibility
+/// constraint (see the module docs): a unit vector, grid frame.
+pub fn ordinal_direction(grid: &VoxelGrid, views: &[PhotoView<'_>]) -> Result<[f64; 3], PhotoError> {
+    let b = grid.bbox();
+    let centre = nalgebra::Vector3::from([0, 1, 2].map(|a| 0.5 * (b.min[a] + b.max[a])));
+    let mean = views.iter().map(|v| v.camera.centre()).sum::<nalgebra::Vector3<f64>>() / views.len().max(1) as f64;
+    let d = (centre - mean).try_normalize(1e-12).unwrap_or_else(nalgebra::Vector3::z);
+    let near = b.corners().iter().map(|c| d.dot(c)).fold(f64::INFINITY, f64::min);
+    for (n, v) in views.iter().enumerate() {
+        if d.dot(&v.camera.centre()) >= near {
+            return Err(PhotoError::NoOrdinalOrder { view: n, direction: [d.x, d.y, d.z] });
+        }
+    }
+    Ok([d.x, d.y, d.z])
+}
+
+/// Voxel colouring with the ordinal visibility constraint from `start` (see the module docs).
+pub fn color_voxels(
+    start: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+) -> Result<PhotoModel, PhotoError> {
+    let t = Instant::now();
+    let grid = *start.grid();
+    check_inputs(&grid, views, params)?;
+    let d = ordinal_direction(&grid, views)?.map(|x| x as f32);
+    let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let mut dense = Dense::from(start);
+
+    // Layers of increasing d·x, one voxel thick.
+    let mut voxels: Vec<(i32, [u32; 3])> = Vec::new();
+    start.for_each_occupied(|i, j, k| {
+        let key = (d[0] * i as f32 + d[1] * j as f32 + d[2] * k as f32).floor() as i32;
+        voxels.push((key, [i as u32, j as u32, k as u32]));
+    });
+    voxels.sort_unstable_by_key(|&(key, v)| (key, v[2], v[1], v[0]));
+    let mut claimed: Vec<Vec<bool>> = cams.iter().map(|c| vec![false; c.width * c.height]).collect();
+    let mut stats = PhotoStats::default();
+    let mut start_idx = 0;
+    while start_idx < voxels.len() {
+        let key = voxels[start_idx].0;
+        let end = start_idx + voxels[start_idx..].iter().take_while(|(k, _)| *k == key).count();
+        let layer = &voxels[start_idx..end];
+        stats.iterations += 1;
+        let occ = |i, j, k| dense.get(i, j, k);
+        // Verdicts: Some(true) consistent and seen, Some(false) carved, None unseen.
+        let verdicts: Vec<Option<bool>> = layer
+            .par_iter()
+            .map(|&(_, v)| {
+                let normal = normal_estimate(&occ, v);
+                let mut samples = Vec::new();
+                let mut patterns = Vec::new();
+                for ((cam, view), marks) in cams.iter().zip(views).zip(&claimed) {
+                    let cos = facing(cam, cam.point(v, [0.0; 3]), normal);
+                    if cos < params.min_cos {
+                        continue;
+                    }
+                    let Some(fp) = cam.footprint(v) else { continue };
+                    let visible = |x: usize, y: usize| !marks[y * cam.width + x];
+                    let (count, mean) = sample_view(cam, view, &fp, visible);
+                    if count > 0 {
+                        samples.push(ViewSample { count, mean, cos });
+                        if params.min_ncc.is_some() {
+                            if let Some(p) = ncc_pattern(cam, view, v, visible) {
+                                patterns.push(p);
+                            }
+                        }
+                    }
+                }
+                if samples.is_empty() {
+                    None
+                } else {
+                    Some(is_consistent(&samples, &patterns, params))
+                }
+            })
+            .collect();
+        stats.visits += layer.len() as u64;
+        for (&(_, v), verdict) in layer.iter().zip(&verdicts) {
+            match verdict {
+                Some(false) => {
+                    dense.clear(v);
+                    stats.carved += 1;
+                }
+                Some(true) => {
+                    for (cam, marks) in cams.iter().zip(claimed.iter_mut()) {
+                        if let Some(fp) = cam.footprint(v) {
+                            for y in fp.y0..fp.y1 {
+                                marks[y * cam.width + fp.x0..y * cam.width + fp.x1].fill(true);
+                            }
+                        }
+                    }
+                }
+                None => {}
+            }
+        }
+        start_idx = end;
+    }
+    let occupancy = dense.to_occupancy(grid);
+    let surface = colour_dense(&dense, &cams, views, params);
+    stats.seconds = t.elapsed().as_secs_f64();
+    Ok(PhotoModel { occupancy, surface, stats })
+}
+
+fn colour_dense(dense: &Dense, cams: &[VoxelCamera], views: &[PhotoView<'_>], params: &PhotoParams) -> ColouredSurface {
+    let voxels = dense.surface();
+    let buffers = render_item_buffers(cams, &voxels);
+    let occ = |i, j, k| dense.get(i, j, k);
+    let colours: Vec<([u8; 3], bool)> = voxels
+        .par_iter()
+        .enumerate()
+        .map(|(idx, &v)| {
+            let normal = normal_estimate(&occ, v);
+            let (samples, _) = gather(cams, views, buffers.as_slice(), v, idx as u32, normal, params, false);
+            (best_colour(&samples), !samples.is_empty())
+        })
+        .collect();
+    ColouredSurface {
+        voxels,
+        colours: colours.iter().map(|c| c.0).collect(),
+        seen: colours.iter().map(|c| c.1).collect(),
+    }
+}
+
+/// Colour the surface of `occupancy` from `views` the way the photo methods colour their results
+/// (item-buffer visibility, views facing the voxel best; `params.min_cos` applies).
+pub fn colour_surface(
+    occupancy: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+) -> Result<ColouredSurface, PhotoError> {
+    let grid = *occupancy.grid();
+    check_inputs(&grid, views, params)?;
+    let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    Ok(colour_dense(&Dense::from(occupancy), &cams, views, params))
+}
+
+/// Photometric re-projection error of a coloured surface on `grid`: each view's item buffer of the
+/// surface voxels, painted with their colours (pixels no voxel covers are black), is compared with
+/// the image over the pixels inside the view's mask or covered by the model; the mean absolute
+/// difference per channel (8-bit levels) over all such pixels of all views. Views without a mask
+/// count covered pixels only.
+pub fn reprojection_error(grid: &VoxelGrid, surface: &ColouredSurface, views: &[PhotoView<'_>]) -> f64 {
+    let (sum, n) = views
+        .par_iter()
+        .map(|view| {
+            let cam = VoxelCamera::new(&view.camera, grid);
+            if view.image.dimensions() != (view.camera.width, view.camera.height) {
+                return (0.0, 0u64);
+            }
+            let buf = ItemBuffer::render(&cam, &surface.voxels);
+            let img = view.image.as_raw();
+            let (mut sum, mut n) = (0f64, 0u64);
+            for y in 0..cam.height {
+                for x in 0..cam.width {
+                    let id = buf.get(x, y);
+                    let inside = view.mask.is_some_and(|m| m.get(x as u32, y as u32));
+                    if id == ItemBuffer::NONE && !inside {
+                        continue;
+                    }
+                    let model = surface.colours.get(id as usize).copied().unwrap_or([0, 0, 0]);
+                    let p = 3 * (y * cam.width + x);
+                    for c in 0..3 {
+                        sum += (img[p + c] as f64 - model[c] as f64).abs();
+                    }
+                    n += 3;
+                }
+            }
+            (sum, n)
+        })
+        .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+    if n == 0 {
+        0.0
+    } else {
+        sum / n as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{Aabb, CameraModel, Intrinsics, Pose};
+    use image::RgbImage;
+    use nalgebra::Vector3;
+
+    const N: u32 = 24;
+
+    fn grid() -> VoxelGrid {
+        VoxelGrid::from_resolution(&Aabb { min: [-0.03, -0.03, 0.0], max: [0.03, 0.03, 0.06] }, N)
+    }
+
+    /// A block with an open pit from the top; the pit is what silhouettes cannot remove.
+    fn in_block(i: usize, j: usize, k: usize) -> bool {
+        let r = 4..20;
+        r.contains(&i) && r.contains(&j) && (2..18).contains(&k)
+    }
+    fn in_pit(i: usize, j: usize, k: usize) -> bool {
+        (8..16).contains(&i) && (8..16).contains(&j) && (10..18).contains(&k)
+    }
+
+    /// Colour by height in bands of two voxels, plus a distinct pit floor.
+    fn colour(v: [u32; 3]) -> [u8; 3] {
+        if v[2] == 9 && (8..16).contains(&v[0]) && (8..16).contains(&v[1]) {
+            return [40, 200, 60];
+        }
+        if (v[2] / 2) % 2 == 0 {
+            [220, 180, 120]
+        } else {
+            [150, 60, 50]
+        }
+    }
+
+    fn camera(azimuth_deg: f64, elevation_deg: f64) -> CameraModel {
+        let (a, e) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
+        let target = Vector3::new(0.0, 0.0, 0.03);
+        let eye = target + 0.3 * Vector3::new(e.cos() * a.cos(), e.cos() * a.sin(), e.sin());
+        CameraModel {
+            width: 160,
+            height: 160,
+            intrinsics: Intrinsics { fx: 300.0, fy: 300.0, cx: 80.0, cy: 80.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+            pose: Pose::look_at(eye, target, Vector3::z()),
+        }
+    }
+
+    /// Images of the truth: its surface voxels painted through an item buffer.
+    fn render(truth: &Occupancy, cams: &[CameraModel]) -> Vec<RgbImage> {
+        let g = *truth.grid();
+        let voxels = truth.boundary_voxels();
+        cams.iter()
+            .map(|c| {
+                let vc = VoxelCamera::new(c, &g);
+                let buf = ItemBuffer::render(&vc, &voxels);
+                RgbImage::from_fn(c.width, c.height, |x, y| {
+                    let id = buf.get(x as usize, y as usize);
+                    image::Rgb(voxels.get(id as usize).map_or([0, 0, 0], |&v| colour(v)))
+                })
+            })
+            .collect()
+    }
+
+    fn scene() -> (Occupancy, Occupancy) {
+        let truth = Occupancy::from_index_fn(grid(), |i, j, k| in_block(i, j, k) && !in_pit(i, j, k));
+        let hull = Occupancy::from_index_fn(grid(), in_block);
+        (truth, hull)
+    }
+
+    #[test]
+    fn space_carving_removes_the_pit_the_hull_keeps_and_colours_the_surface() {
+        let (truth, hull) = scene();
+        let cams: Vec<CameraModel> = (0..12).map(|n| camera(n as f64 * 30.0, 55.0)).collect();
+        let images = render(&truth, &cams);
+        let views: Vec<PhotoView<'_>> =
+            cams.iter().zip(&images).map(|(c, i)| PhotoView { camera: *c, image: i, mask: None }).collect();
+        let params = PhotoParams { threshold: 10.0, min_cos: 0.0, ..PhotoParams::default() };
+        let model = carve_photo(&hull, &views, &params).expect("carves");
+        let before = hull.iou_and_containment(&truth).expect("same grid");
+        let after = model.occupancy.iou_and_containment(&truth).expect("same grid");
+        assert!(after.iou > before.iou + 0.02, "IoU {} -> {}", before.iou, after.iou);
+        assert!(after.containment >= 0.98, "containment {}", after.containment);
+        assert!(model.stats.carved > 0 && model.stats.iterations >= 2);
+        // Seen surface voxels of the truth take their true colour.
+        let (mut err, mut n) = (0f64, 0usize);
+        for ((v, c), &seen) in model.surface.voxels.iter().zip(&model.surface.colours).zip(&model.surface.seen) {
+            if seen && truth.get(v[0] as usize, v[1] as usize, v[2] as usize) {
+                let t = colour(*v);
+                err += (0..3).map(|ch| (c[ch] as f64 - t[ch] as f64).abs()).sum::<f64>() / 3.0;
+                n += 1;
+            }
+        }
+        assert!(n > 100);
+        assert!(err / n as f64 <= 20.0, "mean colour error {}", err / n as f64);
+        // The coloured result re-projects better than the hull coloured the same way.
+        let hull_surface = colour_surface(&hull, &views, &params).expect("colours");
+        let e_hull = reprojection_error(&grid(), &hull_surface, &views);
+        let e_model = reprojection_error(&grid(), &model.surface, &views);
+        assert!(e_model < e_hull, "re-projection {e_model} vs hull {e_hull}");
+    }
+
+    #[test]
+    fn voxel_colouring_visits_each_voxel_once_from_one_side() {
+        let (truth, hull) = scene();
+        let cams: Vec<CameraModel> = (0..5).map(|n| camera(-40.0 + n as f64 * 20.0, 55.0)).collect();
+        let images = render(&truth, &cams);
+        let views: Vec<PhotoView<'_>> =
+            cams.iter().zip(&images).map(|(c, i)| PhotoView { camera: *c, image: i, mask: None }).collect();
+        let params = PhotoParams { threshold: 10.0, min_cos: 0.0, ..PhotoParams::default() };
+        let model = color_voxels(&hull, &views, &params).expect("ordinal order holds");
+        assert_eq!(model.stats.visits, hull.count());
+        let before = hull.iou_and_containment(&truth).expect("same grid");
+        let after = model.occupancy.iou_and_containment(&truth).expect("same grid");
+        assert!(after.iou > before.iou, "IoU {} -> {}", before.iou, after.iou);
+        assert!(after.containment >= 0.98, "containment {}", after.containment);
+
+        // A full ring level with the object has no ordinal order (a ring above the volume's top has:
+        // a top-down sweep).
+        let ring: Vec<CameraModel> = (0..6).map(|n| camera(n as f64 * 60.0, 0.0)).collect();
+        let img = RgbImage::new(160, 160);
+        let ring_views: Vec<PhotoView<'_>> =
+            ring.iter().map(|c| PhotoView { camera: *c, image: &img, mask: None }).collect();
+        assert!(matches!(color_voxels(&hull, &ring_views, &params), Err(PhotoError::NoOrdinalOrder { .. })));
+    }
+
+    #[test]
+    fn bad_inputs_are_errors_not_panics() {
+        let (_, hull) = scene();
+        let small = RgbImage::new(10, 10);
+        let views = [PhotoView { camera: camera(0.0, 30.0), image: &small, mask: None }];
+        let p = PhotoParams::default();
+        assert!(matches!(carve_photo(&hull, &views, &p), Err(PhotoError::ImageSize { view: 0, .. })));
+        let img = RgbImage::new(160, 160);
+        let ok = [PhotoView { camera: camera(0.0, 30.0), image: &img, mask: None }];
+        let bad = PhotoParams { min_views: 1, ..p };
+        assert!(matches!(carve_photo(&hull, &ok, &bad), Err(PhotoError::BadParams { .. })));
+        let mut cam = camera(0.0, 30.0);
+        cam.intrinsics.fx = f64::NAN;
+        let nan = [PhotoView { camera: cam, image: &img, mask: None }];
+        assert!(matches!(carve_photo(&hull, &nan, &p), Err(PhotoError::BadCamera { view: 0 })));
+        // No views: nothing to judge, the start is returned.
+        let model = carve_photo(&hull, &[], &p).expect("no views");
+        assert!(model.occupancy.same_voxels(&hull));
+    }
+}

@@ -1,0 +1,208 @@
+//! The photo-consistency methods' part of a scan or reconstruction: from the visual hull and the
+//! images to a carved, coloured model and its figures (`voxel-coloring`, `space-carving-photo`).
+//!
+//! The visual hull (silhouette carving, done by the caller) is the starting volume. `voxel-coloring`
+//! keeps only the views whose viewing direction from the working volume's centre is within
+//! `arc_deg` of the first view's (the ordinal visibility constraint needs the cameras on one side of
+//! a plane); `space-carving-photo` uses every view. The hull is coloured the same way as the result,
+//! so the two can be compared (ground truth on simulated rigs, photometric re-projection always).
+
+use std::collections::HashMap;
+
+use nalgebra::Vector3;
+
+use super::report::{PhotoReport, VisualHull};
+use crate::config::{Method, PhotoConfig};
+use crate::geometry::VoxelGrid;
+use crate::pipeline::photo_consistency::UNSEEN_COLOUR;
+use crate::pipeline::{
+    carve_photo, color_voxels, colour_surface, reprojection_error, ColouredSurface, Occupancy, PhotoError, PhotoParams,
+    PhotoView, TriangleMesh,
+};
+
+/// The pipeline parameters of a `[reconstruction.photo]` section.
+pub fn photo_params(c: &PhotoConfig) -> PhotoParams {
+    PhotoParams {
+        threshold: c.threshold as f32,
+        min_ncc: c.min_ncc.map(|x| x as f32),
+        min_views: c.min_views,
+        min_cos: c.min_cos as f32,
+        max_iterations: c.max_iterations,
+    }
+}
+
+/// The simulated scene's truth on the result's grid: occupancy and the true surface colour (8-bit
+/// RGB) at a grid-frame point, metres.
+pub struct Truth<'a> {
+    /// True occupancy on the same grid.
+    pub occupancy: &'a Occupancy,
+    /// True surface colour at a point.
+    pub colour_at: &'a (dyn Fn(&Vector3<f64>) -> [u8; 3] + Sync),
+}
+
+impl std::fmt::Debug for Truth<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Truth").field("voxels", &self.occupancy.count()).finish_non_exhaustive()
+    }
+}
+
+/// What the output writer needs from a photo-consistency run.
+#[derive(Debug, Clone)]
+pub struct PhotoOutputs {
+    grid: VoxelGrid,
+    /// The result's coloured surface.
+    pub surface: ColouredSurface,
+    /// Colour error of the result against the truth (simulated rigs).
+    pub colour_error: Option<f64>,
+    /// The hull, measured like the result.
+    pub visual_hull: VisualHull,
+    /// Counters and figures.
+    pub report: PhotoReport,
+}
+
+impl PhotoOutputs {
+    fn lookup(&self) -> HashMap<[u32; 3], [u8; 3]> {
+        self.surface
+            .voxels
+            .iter()
+            .zip(&self.surface.colours)
+            .zip(&self.surface.seen)
+            .filter(|(_, &seen)| seen)
+            .map(|((v, c), _)| (*v, *c))
+            .collect()
+    }
+
+    /// Colours of the occupied voxels of `occupancy` in `for_each_occupied` order: surface voxels
+    /// take their colour, interior and unseen voxels [`UNSEEN_COLOUR`].
+    pub fn voxel_colours(&self, occupancy: &Occupancy) -> Vec<[u8; 3]> {
+        let map = self.lookup();
+        let mut out = Vec::new();
+        occupancy.for_each_occupied(|i, j, k| {
+            out.push(map.get(&[i as u32, j as u32, k as u32]).copied().unwrap_or(UNSEEN_COLOUR))
+        });
+        out
+    }
+
+    /// Vertex colours of a mesh of the result: each vertex takes the colour of the nearest seen
+    /// surface voxel within two voxels ([`UNSEEN_COLOUR`] when there is none).
+    pub fn mesh_colours(&self, mesh: &TriangleMesh) -> Vec<[u8; 3]> {
+        let map = self.lookup();
+        let g = &self.grid;
+        let s = g.voxel_size as f32;
+        mesh.vertices
+            .iter()
+            .map(|p| {
+                let f = [0, 1, 2].map(|a| (p[a] - g.origin[a] as f32) / s - 0.5);
+                let base = f.map(|x| x.round() as i64);
+                let mut best: Option<(f32, [u8; 3])> = None;
+                for dz in -2..=2i64 {
+                    for dy in -2..=2i64 {
+                        for dx in -2..=2i64 {
+                            let c = [base[0] + dx, base[1] + dy, base[2] + dz];
+                            if c.iter().any(|&x| x < 0 || x > u32::MAX as i64) {
+                                continue;
+                            }
+                            let Some(col) = map.get(&c.map(|x| x as u32)) else { continue };
+                            let d2: f32 = (0..3).map(|a| (c[a] as f32 - f[a]).powi(2)).sum();
+                            if best.is_none_or(|(b, _)| d2 < b) {
+                                best = Some((d2, *col));
+                            }
+                        }
+                    }
+                }
+                best.map_or(UNSEEN_COLOUR, |b| b.1)
+            })
+            .collect()
+    }
+}
+
+/// Views for `voxel-coloring`: the first view and those whose viewing direction from the volume's
+/// centre is within `arc_deg` of it.
+pub fn ordinal_subset<'a>(grid: &VoxelGrid, views: &[PhotoView<'a>], arc_deg: f64) -> Vec<PhotoView<'a>> {
+    let b = grid.bbox();
+    let centre = Vector3::from([0, 1, 2].map(|a| 0.5 * (b.min[a] + b.max[a])));
+    let dir = |v: &PhotoView<'_>| (v.camera.centre() - centre).try_normalize(1e-12);
+    let Some(first) = views.first().and_then(dir) else { return views.to_vec() };
+    let cos = arc_deg.to_radians().cos();
+    views.iter().filter(|v| dir(v).is_some_and(|d| d.dot(&first) >= cos - 1e-12)).copied().collect()
+}
+
+/// Mean absolute colour error per channel (0..255) of the seen surface voxels next to the true
+/// surface, against the true colour at their centres.
+fn colour_error(surface: &ColouredSurface, grid: &VoxelGrid, truth: &Truth<'_>) -> Option<f64> {
+    let (mut sum, mut n) = (0f64, 0u64);
+    for ((v, c), &seen) in surface.voxels.iter().zip(&surface.colours).zip(&surface.seen) {
+        // Only voxels next to the true surface (their 3x3x3 neighbourhood holds both truly occupied
+        // and truly empty voxels) have a true surface colour to compare with.
+        let (a, b, c0) = (v[0] as i64, v[1] as i64, v[2] as i64);
+        let mut inside = 0;
+        for dz in -1..=1 {
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    inside += truth.occupancy.get_signed(a + dx, b + dy, c0 + dz) as u32;
+                }
+            }
+        }
+        if !seen || inside == 0 || inside == 27 {
+            continue;
+        }
+        let t = (truth.colour_at)(&grid.centre(v[0] as usize, v[1] as usize, v[2] as usize));
+        for ch in 0..3 {
+            sum += (c[ch] as f64 - t[ch] as f64).abs();
+        }
+        n += 3;
+    }
+    (n > 0).then(|| sum / n as f64)
+}
+
+/// Run `method` (a photo method) from the visual `hull` with `views`, returning the carved occupancy
+/// and what the output writer needs. `truth` adds ground-truth figures.
+pub fn reconstruct_photo(
+    method: Method,
+    config: &PhotoConfig,
+    hull: &Occupancy,
+    views: &[PhotoView<'_>],
+    truth: Option<&Truth<'_>>,
+) -> Result<(Occupancy, PhotoOutputs), PhotoError> {
+    let params = photo_params(config);
+    let grid = *hull.grid();
+    let used: Vec<PhotoView<'_>> =
+        if method == Method::VoxelColoring { ordinal_subset(&grid, views, config.arc_deg) } else { views.to_vec() };
+    let model = if method == Method::VoxelColoring {
+        color_voxels(hull, &used, &params)?
+    } else {
+        carve_photo(hull, &used, &params)?
+    };
+    tracing::info!(
+        method = method.name(),
+        views = used.len(),
+        carved = model.stats.carved,
+        iterations = model.stats.iterations,
+        seconds = model.stats.seconds,
+        "photo-consistency done"
+    );
+    let hull_surface = colour_surface(hull, &used, &params)?;
+    let hull_overlap = truth.and_then(|t| hull.iou_and_containment(t.occupancy).ok());
+    let visual_hull = VisualHull {
+        voxels: hull.count(),
+        volume_m3: hull.volume_m3(),
+        iou: hull_overlap.map(|o| o.iou),
+        containment: hull_overlap.map(|o| o.containment),
+        colour_error: truth.and_then(|t| colour_error(&hull_surface, &grid, t)),
+        reprojection_error: Some(reprojection_error(&grid, &hull_surface, &used)),
+    };
+    let report = PhotoReport {
+        threshold: config.threshold,
+        min_ncc: config.min_ncc,
+        views: used.len(),
+        iterations: model.stats.iterations,
+        visits: model.stats.visits,
+        carved: model.stats.carved,
+        seconds: model.stats.seconds,
+        surface_voxels: model.surface.voxels.len(),
+        seen_surface_voxels: model.surface.seen.iter().filter(|&&s| s).count(),
+        reprojection_error: reprojection_error(&grid, &model.surface, &used),
+    };
+    let colour_error = truth.and_then(|t| colour_error(&model.surface, &grid, t));
+    Ok((model.occupancy, PhotoOutputs { grid, surface: model.surface, colour_error, visual_hull, report }))
+}

@@ -1,0 +1,112 @@
+//! End-to-end: the real `scanrig` binary scans the simulated cup (colour bands, an open pit) with the
+//! photo-consistency methods; the report is checked against the simulated ground truth and the visual
+//! hull, and the outputs are checked for colours.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn repo(path: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
+}
+
+/// A rig file derived from a shipped one with some lines replaced.
+fn derived_rig(dir: &Path, base: &str, replace: &[(&str, &str)]) -> PathBuf {
+    let mut text = std::fs::read_to_string(repo(base)).expect("shipped rig readable");
+    for (from, to) in replace {
+        assert!(text.contains(from), "{base} has no `{from}`");
+        text = text.replacen(from, to, 1);
+    }
+    let path = dir.join("rig.toml");
+    std::fs::write(&path, text).expect("write rig");
+    path
+}
+
+fn scan(rig: &Path, out: &Path) -> serde_json::Value {
+    let output = Command::new(env!("CARGO_BIN_EXE_scanrig"))
+        .args(["scan", "--rig"])
+        .arg(rig)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .expect("run scanrig");
+    assert!(
+        output.status.success(),
+        "scan failed:\nstdout: {}\nstderr: {}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    serde_json::from_slice(&std::fs::read(out.join("report.json")).expect("report.json")).expect("JSON")
+}
+
+fn num(report: &serde_json::Value, section: &str, key: &str) -> f64 {
+    report[section][key].as_f64().unwrap_or_else(|| panic!("{section}.{key} missing in {report}"))
+}
+
+fn header(path: &Path) -> String {
+    let bytes = std::fs::read(path).expect("file written");
+    let end = bytes.windows(10).position(|w| w == b"end_header").expect("PLY header");
+    String::from_utf8_lossy(&bytes[..end]).into_owned()
+}
+
+/// Checks shared by both methods; returns (IoU, hull IoU, containment, colour error).
+fn check(report: &serde_json::Value, out: &Path, method: &str) -> (f64, f64, f64, f64) {
+    assert_eq!(report["method"], method);
+    let iou = num(report, "ground_truth", "iou");
+    let hull = num(report, "visual_hull", "iou");
+    let containment = num(report, "ground_truth", "containment");
+    let colour = num(report, "ground_truth", "colour_error");
+    let reproj = num(report, "photo", "reprojection_error");
+    let hull_reproj = num(report, "visual_hull", "reprojection_error");
+    println!(
+        "{method}: IoU {iou:.4} (hull {hull:.4}), containment {containment:.4}, colour error {colour:.2}/255 \
+         (hull {:.2}), re-projection error {reproj:.2} (hull {hull_reproj:.2}), carved {}, {} s",
+        num(report, "visual_hull", "colour_error"),
+        report["photo"]["carved"],
+        report["timings_s"]["total"]
+    );
+    assert!(num(report, "photo", "carved") > 0.0, "nothing carved");
+    assert!(iou > hull, "IoU {iou} not above the visual hull's {hull}");
+    assert!(containment >= 0.98, "containment {containment}");
+    assert!((0.0..255.0).contains(&colour));
+    // Coloured outputs.
+    assert!(header(&out.join("model.ply")).contains("property uchar red"));
+    assert!(header(&out.join("voxels.ply")).contains("property uchar red"));
+    let obj = std::fs::read_to_string(out.join("model.obj")).expect("obj");
+    let v = obj.lines().find(|l| l.starts_with("v ")).expect("a vertex");
+    assert_eq!(v.split_whitespace().count(), 7, "OBJ vertex without colour: {v}");
+    (iou, hull, containment, colour)
+}
+
+/// Small grid, runs in every profile.
+#[test]
+fn space_carving_photo_beats_the_hull_at_64() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rig =
+        derived_rig(dir.path(), "config/rigs/space-carving-photo.toml", &[("resolution = 128", "resolution = 64")]);
+    let out = dir.path().join("out");
+    let report = scan(&rig, &out);
+    check(&report, &out, "space-carving-photo");
+}
+
+/// The shipped rig at 128^3: the issue's acceptance figures.
+#[test]
+#[cfg_attr(debug_assertions, ignore = "heavy: run with --release")]
+fn space_carving_photo_on_the_shipped_rig() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("out");
+    let report = scan(&repo("config/rigs/space-carving-photo.toml"), &out);
+    let (_, _, _, colour) = check(&report, &out, "space-carving-photo");
+    assert!(colour < 20.0, "colour error {colour}");
+}
+
+/// Voxel colouring on a 90-degree arc: every hull voxel visited exactly once.
+#[test]
+#[cfg_attr(debug_assertions, ignore = "heavy: run with --release")]
+fn voxel_coloring_on_the_shipped_rig() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("out");
+    let report = scan(&repo("config/rigs/voxel-coloring.toml"), &out);
+    check(&report, &out, "voxel-coloring");
+    assert_eq!(num(&report, "photo", "visits"), num(&report, "visual_hull", "voxels"));
+    assert!(num(&report, "photo", "views") < 36.0);
+}
