@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::watch;
 
 use crate::acquisition::{AcquisitionError, CancelToken};
-use crate::config::RigConfig;
+use crate::config::{Method, RigConfig};
 use crate::scan::{ScanError, ScanEvent};
 
 use super::metrics::Metrics;
@@ -41,7 +41,7 @@ pub struct ProgressSnapshot {
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StartRequest {
-    /// Reconstruction method; only `space-carving` is implemented.
+    /// Reconstruction method; must equal the rig file's (space carving or a photo method).
     pub method: Option<String>,
     /// Turntable positions, 3..=720.
     pub positions: Option<u32>,
@@ -140,8 +140,20 @@ impl Jobs {
         let mut config = config.clone();
         if let Some(m) = &req.method {
             if m != config.reconstruction.method.name() {
-                return Err(JobError::Invalid { field: "method", problem: "only space-carving is implemented" });
+                return Err(JobError::Invalid {
+                    field: "method",
+                    problem: "the method is the rig file's `reconstruction.method`; change it there and reload",
+                });
             }
+        }
+        // The daemon's scan job runs the silhouette pipeline (space carving and the photo methods);
+        // the methods with their own acquisition run through `scanrig scan` for now. Refuse them
+        // rather than run something else under their name.
+        if matches!(config.reconstruction.method, Method::ShadowCarving | Method::DepthFusion) {
+            return Err(JobError::Invalid {
+                field: "method",
+                problem: "shadow-carving and depth-fusion scans run with `scanrig scan`, not yet in the daemon",
+            });
         }
         if let Some(n) = req.positions {
             if !(3..=720).contains(&n) {
