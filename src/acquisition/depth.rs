@@ -6,7 +6,7 @@ use std::sync::mpsc::SyncSender;
 use std::time::{Duration, Instant};
 
 use super::{
-    park, position_angle, AcquisitionError, AcquisitionSummary, CancelToken, Progress, SequenceTracker, Stage,
+    move_and_settle, run_then_park, AcquisitionError, AcquisitionSummary, CancelToken, Progress, SequenceTracker, Stage,
 };
 use crate::config::ScanPlan;
 use crate::devices::{DepthFrame, DeviceError, Rig};
@@ -34,23 +34,7 @@ pub fn run_depth_scan(
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
-    let result = depth_scan_steps(rig, plan, views, cancel, progress);
-    let total = plan.positions as usize;
-    progress(&Progress { step: result.as_ref().map_or(0, |s| s.views), total, stage: Stage::Parking });
-    let parked = park(rig, plan);
-    match (result, parked) {
-        (Ok(summary), Ok(())) => {
-            progress(&Progress { step: total, total, stage: Stage::Done });
-            Ok(summary)
-        }
-        (Ok(_), Err(source)) => Err(AcquisitionError::Park { source }),
-        (Err(e), parked) => {
-            if let Err(p) = parked {
-                tracing::error!(error = %p, "parking after a failed depth scan also failed");
-            }
-            Err(e)
-        }
-    }
+    run_then_park(rig, plan, 0, progress, |rig, progress| depth_scan_steps(rig, plan, views, cancel, progress))
 }
 
 fn depth_scan_steps(
@@ -61,7 +45,6 @@ fn depth_scan_steps(
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
     let total = plan.positions as usize;
-    let move_timeout = Duration::from_millis(plan.move_timeout_ms);
     let capture_timeout = Duration::from_millis(plan.capture_timeout_ms);
     let mut summary = AcquisitionSummary::default();
     let mut sequence = SequenceTracker::default();
@@ -71,14 +54,7 @@ fn depth_scan_steps(
         }
         let span = tracing::info_span!("depth_position", position, total);
         let _enter = span.enter();
-        let device = |step: &'static str| move |source| AcquisitionError::Device { step, position, source };
-        progress(&Progress { step: position, total, stage: Stage::Moving });
-        rig.turntable.move_to(position_angle(plan, position), move_timeout).map_err(device("turning the table"))?;
-        let angle_deg = rig.turntable.angle();
-        if plan.settle_ms > 0 {
-            progress(&Progress { step: position, total, stage: Stage::Settling });
-            std::thread::sleep(Duration::from_millis(plan.settle_ms));
-        }
+        let angle_deg = move_and_settle(rig, plan, position, progress)?;
         let changed_at = Instant::now();
         if cancel.is_cancelled() {
             return Err(AcquisitionError::Cancelled { completed: position, total });

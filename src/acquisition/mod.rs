@@ -167,7 +167,22 @@ pub fn run_turntable_scan_from(
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
-    let result = turntable_scan_steps(rig, plan, first, views, cancel, progress);
+    run_then_park(rig, plan, first, progress, |rig, progress| {
+        turntable_scan_steps(rig, plan, first, views, cancel, progress)
+    })
+}
+
+/// Run the steps of a sequence that starts at position `first`, then park the rig (see [`park`])
+/// whatever happened, reporting the Parking and Done stages. An error of the steps wins over a
+/// parking error, which is then logged.
+pub(crate) fn run_then_park(
+    rig: &mut Rig,
+    plan: &ScanPlan,
+    first: usize,
+    progress: &mut dyn FnMut(&Progress),
+    steps: impl FnOnce(&mut Rig, &mut dyn FnMut(&Progress)) -> Result<AcquisitionSummary, AcquisitionError>,
+) -> Result<AcquisitionSummary, AcquisitionError> {
+    let result = steps(rig, progress);
     let total = plan.positions as usize;
     progress(&Progress { step: result.as_ref().map_or(first, |s| first + s.views), total, stage: Stage::Parking });
     let parked = park(rig, plan);
@@ -184,6 +199,27 @@ pub fn run_turntable_scan_from(
             Err(e)
         }
     }
+}
+
+/// Turn to position `position` of `plan`, wait until the move has finished, and settle. Returns the
+/// angle the turntable reports, degrees.
+pub(crate) fn move_and_settle(
+    rig: &mut Rig,
+    plan: &ScanPlan,
+    position: usize,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<f64, AcquisitionError> {
+    let total = plan.positions as usize;
+    progress(&Progress { step: position, total, stage: Stage::Moving });
+    rig.turntable
+        .move_to(position_angle(plan, position), Duration::from_millis(plan.move_timeout_ms))
+        .map_err(|source| AcquisitionError::Device { step: "turning the table", position, source })?;
+    let angle_deg = rig.turntable.angle();
+    if plan.settle_ms > 0 {
+        progress(&Progress { step: position, total, stage: Stage::Settling });
+        std::thread::sleep(Duration::from_millis(plan.settle_ms));
+    }
+    Ok(angle_deg)
 }
 
 /// Lights and lasers off, projector blank, turntable parked; tries every device even if one fails
@@ -230,15 +266,7 @@ fn turntable_scan_steps(
         let _enter = span.enter();
         let device = |step: &'static str| move |source| AcquisitionError::Device { step, position, source };
 
-        progress(&Progress { step: position, total, stage: Stage::Moving });
-        let target = position_angle(plan, position);
-        rig.turntable.move_to(target, move_timeout).map_err(device("turning the table"))?;
-        let angle_deg = rig.turntable.angle();
-
-        if plan.settle_ms > 0 {
-            progress(&Progress { step: position, total, stage: Stage::Settling });
-            std::thread::sleep(Duration::from_millis(plan.settle_ms));
-        }
+        let angle_deg = move_and_settle(rig, plan, position, progress)?;
 
         if !lights_set {
             progress(&Progress { step: position, total, stage: Stage::Lighting });

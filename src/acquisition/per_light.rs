@@ -6,8 +6,8 @@ use std::sync::mpsc::SyncSender;
 use std::time::{Duration, Instant};
 
 use super::{
-    capture_fresh, park, position_angle, AcquisitionError, AcquisitionSummary, CancelToken, Progress, SequenceTracker,
-    Stage,
+    capture_fresh, move_and_settle, run_then_park, AcquisitionError, AcquisitionSummary, CancelToken, Progress,
+    SequenceTracker, Stage,
 };
 use crate::config::ScanPlan;
 use crate::devices::{DeviceError, Frame, Rig};
@@ -37,23 +37,7 @@ pub fn run_per_light_scan(
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
-    let result = per_light_steps(rig, plan, views, cancel, progress);
-    let total = plan.positions as usize;
-    progress(&Progress { step: result.as_ref().map_or(0, |s| s.views), total, stage: Stage::Parking });
-    let parked = park(rig, plan);
-    match (result, parked) {
-        (Ok(summary), Ok(())) => {
-            progress(&Progress { step: total, total, stage: Stage::Done });
-            Ok(summary)
-        }
-        (Ok(_), Err(source)) => Err(AcquisitionError::Park { source }),
-        (Err(e), parked) => {
-            if let Err(p) = parked {
-                tracing::error!(error = %p, "parking after a failed scan also failed");
-            }
-            Err(e)
-        }
-    }
+    run_then_park(rig, plan, 0, progress, |rig, progress| per_light_steps(rig, plan, views, cancel, progress))
 }
 
 fn per_light_steps(
@@ -77,13 +61,7 @@ fn per_light_steps(
         let _enter = span.enter();
         let device = |step: &'static str| move |source| AcquisitionError::Device { step, position, source };
 
-        progress(&Progress { step: position, total, stage: Stage::Moving });
-        rig.turntable.move_to(position_angle(plan, position), move_timeout).map_err(device("turning the table"))?;
-        let angle_deg = rig.turntable.angle();
-        if plan.settle_ms > 0 {
-            progress(&Progress { step: position, total, stage: Stage::Settling });
-            std::thread::sleep(Duration::from_millis(plan.settle_ms));
-        }
+        let angle_deg = move_and_settle(rig, plan, position, progress)?;
 
         let mut stale_here = 0u32;
         // `None` = ambient (all off), then each shadow light alone.
