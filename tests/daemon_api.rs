@@ -1,88 +1,26 @@
 //! End-to-end tests of the real `scanrigd` binary on the simulated rig, over HTTP on 127.0.0.1.
 //! Every wait is bounded.
 
-use std::io::{BufRead, BufReader};
+mod daemon_common;
+
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use scanrig::service::client::{Client, ClientError};
-
-struct Daemon {
-    child: Child,
-    addr: String,
-    stderr: PathBuf,
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
+use daemon_common::{client, frames_on_disk, rig_from, scan_meta, spawn, wait_for};
+use scanrig::service::client::ClientError;
 
 /// A rig file: the shipped simulated rig, smaller and with a settle time so a scan takes ~2 s.
 fn rig_file(dir: &Path, settle_ms: u32) -> PathBuf {
-    let base = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/simulated.toml"))
-        .expect("simulated rig");
-    let text = base
-        .replace("positions = 24", "positions = 8")
-        .replace("settle_ms = 0", &format!("settle_ms = {settle_ms}"))
-        .replace("resolution = 128", "resolution = 40");
-    assert_ne!(text, base);
-    let path = dir.join("rig.toml");
-    std::fs::write(&path, text).expect("write rig");
-    path
+    let settle = format!("settle_ms = {settle_ms}");
+    rig_from(
+        dir,
+        "simulated.toml",
+        &[("positions = 24", "positions = 8"), ("settle_ms = 0", &settle), ("resolution = 128", "resolution = 40")],
+    )
 }
 
-fn spawn(rig: &Path, state: &Path) -> Daemon {
-    let stderr = state.join(format!("daemon-{}.log", Instant::now().elapsed().as_nanos()));
-    let log = std::fs::File::create(&stderr).expect("log");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_scanrigd"))
-        .args(["--listen", "127.0.0.1:0", "--shutdown-deadline", "5", "--config"])
-        .arg(rig)
-        .arg("--state-dir")
-        .arg(state)
-        .env("SCANRIG_LOG", "info")
-        .env_remove("NOTIFY_SOCKET")
-        .stdout(Stdio::piped())
-        .stderr(log)
-        .spawn()
-        .expect("spawn scanrigd");
-    let stdout = child.stdout.take().expect("stdout");
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = BufReader::new(stdout).read_line(&mut line);
-        let _ = tx.send(line);
-    });
-    let line = rx.recv_timeout(Duration::from_secs(20)).expect("scanrigd did not start in 20 s");
-    let addr = line.trim().rsplit(' ').next().expect("address").to_owned();
-    Daemon { child, addr, stderr }
-}
-
-fn client(d: &Daemon) -> Client {
-    Client::new(&d.addr, None).expect("client").with_timeout(Duration::from_secs(30))
-}
-
-fn wait_for(what: &str, limit: Duration, mut f: impl FnMut() -> bool) {
-    let t = Instant::now();
-    while !f() {
-        assert!(t.elapsed() < limit, "timed out waiting for {what}");
-        std::thread::sleep(Duration::from_millis(25));
-    }
-}
-
-fn scan_status(c: &Client, id: &str) -> String {
-    c.get_json(&format!("/api/v1/scans/{id}")).expect("scan")["scan"]["status"].as_str().unwrap_or("").to_owned()
-}
-
-fn frames_on_disk(state: &Path, id: &str) -> Vec<String> {
-    let mut names: Vec<String> = std::fs::read_dir(state.join("scans").join(id).join("frames"))
-        .map(|d| d.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect())
-        .unwrap_or_default();
-    names.sort();
-    names
+fn scan_status(c: &scanrig::service::client::Client, id: &str) -> String {
+    scan_meta(c, id)["status"].as_str().unwrap_or("").to_owned()
 }
 
 #[test]
