@@ -3,34 +3,11 @@
 //! simulated ground truth: Chamfer distance under 1 % of the cup's bounding-box diagonal, the voxel
 //! solid well above the visual hull, and the pit open down to its floor.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod scan_common;
 
-fn repo(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
-}
+use scan_common::{num, repo, run_scan};
 
-fn run_scan(rig: &Path, out: &Path) -> serde_json::Value {
-    let output = Command::new(env!("CARGO_BIN_EXE_scanrig"))
-        .args(["scan", "--rig"])
-        .arg(rig)
-        .arg("--out")
-        .arg(out)
-        .output()
-        .expect("run scanrig");
-    assert!(
-        output.status.success(),
-        "scan failed:\nstdout: {}\nstderr: {}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    );
-    serde_json::from_slice(&std::fs::read(out.join("report.json")).expect("report.json written"))
-        .expect("report.json is JSON")
-}
-
-fn num(report: &serde_json::Value, section: &str, key: &str) -> f64 {
-    report[section][key].as_f64().unwrap_or_else(|| panic!("{section}.{key} missing in {report}"))
-}
+use std::path::Path;
 
 /// Vertices of an OBJ file, metres.
 fn obj_vertices(path: &Path) -> Vec<[f64; 3]> {

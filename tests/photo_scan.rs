@@ -2,45 +2,11 @@
 //! photo-consistency methods; the report is checked against the simulated ground truth and the visual
 //! hull, and the outputs are checked for colours.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod scan_common;
 
-fn repo(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
-}
+use scan_common::{derived_rig, num, repo, run_scan};
 
-/// A rig file derived from a shipped one with some lines replaced.
-fn derived_rig(dir: &Path, base: &str, replace: &[(&str, &str)]) -> PathBuf {
-    let mut text = std::fs::read_to_string(repo(base)).expect("shipped rig readable");
-    for (from, to) in replace {
-        assert!(text.contains(from), "{base} has no `{from}`");
-        text = text.replacen(from, to, 1);
-    }
-    let path = dir.join("rig.toml");
-    std::fs::write(&path, text).expect("write rig");
-    path
-}
-
-fn scan(rig: &Path, out: &Path) -> serde_json::Value {
-    let output = Command::new(env!("CARGO_BIN_EXE_scanrig"))
-        .args(["scan", "--rig"])
-        .arg(rig)
-        .arg("--out")
-        .arg(out)
-        .output()
-        .expect("run scanrig");
-    assert!(
-        output.status.success(),
-        "scan failed:\nstdout: {}\nstderr: {}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    );
-    serde_json::from_slice(&std::fs::read(out.join("report.json")).expect("report.json")).expect("JSON")
-}
-
-fn num(report: &serde_json::Value, section: &str, key: &str) -> f64 {
-    report[section][key].as_f64().unwrap_or_else(|| panic!("{section}.{key} missing in {report}"))
-}
+use std::path::Path;
 
 fn header(path: &Path) -> String {
     let bytes = std::fs::read(path).expect("file written");
@@ -84,7 +50,7 @@ fn space_carving_photo_beats_the_hull_at_64() {
     let rig =
         derived_rig(dir.path(), "config/rigs/space-carving-photo.toml", &[("resolution = 128", "resolution = 64")]);
     let out = dir.path().join("out");
-    let report = scan(&rig, &out);
+    let report = run_scan(&rig, &out);
     check(&report, &out, "space-carving-photo");
 }
 
@@ -94,7 +60,7 @@ fn space_carving_photo_beats_the_hull_at_64() {
 fn space_carving_photo_on_the_shipped_rig() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("out");
-    let report = scan(&repo("config/rigs/space-carving-photo.toml"), &out);
+    let report = run_scan(&repo("config/rigs/space-carving-photo.toml"), &out);
     let (_, _, _, colour) = check(&report, &out, "space-carving-photo");
     assert!(colour < 20.0, "colour error {colour}");
 }
@@ -105,7 +71,7 @@ fn space_carving_photo_on_the_shipped_rig() {
 fn voxel_coloring_on_the_shipped_rig() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("out");
-    let report = scan(&repo("config/rigs/voxel-coloring.toml"), &out);
+    let report = run_scan(&repo("config/rigs/voxel-coloring.toml"), &out);
     check(&report, &out, "voxel-coloring");
     assert_eq!(num(&report, "photo", "visits"), num(&report, "visual_hull", "voxels"));
     assert!(num(&report, "photo", "views") < 36.0);

@@ -1,40 +1,9 @@
 //! End-to-end: the real `scanrig` binary scans the simulated rig and writes its results; the report
 //! is checked against the simulated ground truth.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod scan_common;
 
-fn scanrig() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_scanrig"))
-}
-
-fn repo(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
-}
-
-/// A rig file derived from a shipped one with some lines replaced.
-fn derived_rig(dir: &Path, base: &str, replace: &[(&str, &str)]) -> PathBuf {
-    let mut text = std::fs::read_to_string(repo(base)).expect("shipped rig readable");
-    for (from, to) in replace {
-        assert!(text.contains(from), "{base} has no `{from}`");
-        text = text.replacen(from, to, 1);
-    }
-    let path = dir.join("rig.toml");
-    std::fs::write(&path, text).expect("write rig");
-    path
-}
-
-fn run_scan(rig: &Path, out: &Path) -> serde_json::Value {
-    let output = scanrig().args(["scan", "--rig"]).arg(rig).arg("--out").arg(out).output().expect("run scanrig");
-    assert!(
-        output.status.success(),
-        "scan failed:\nstdout: {}\nstderr: {}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let report = std::fs::read(out.join("report.json")).expect("report.json written");
-    serde_json::from_slice(&report).expect("report.json is JSON")
-}
+use scan_common::{derived_rig, repo, run_scan, scanrig};
 
 fn gt(report: &serde_json::Value, key: &str) -> f64 {
     report["ground_truth"][key].as_f64().unwrap_or_else(|| panic!("ground_truth.{key} missing in {report}"))

@@ -2,46 +2,9 @@
 //! 24 positions x 4 lights) and the report is checked against the simulated ground truth; and the
 //! 72 x 8 rig recovers more of the pit than the 24 x 4 one.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod scan_common;
 
-fn repo(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
-}
-
-/// A rig file derived from a shipped one with some lines replaced.
-fn derived_rig(dir: &Path, base: &str, replace: &[(&str, &str)]) -> PathBuf {
-    let mut text = std::fs::read_to_string(repo(base)).expect("shipped rig readable");
-    for (from, to) in replace {
-        assert!(text.contains(from), "{base} has no `{from}`");
-        text = text.replacen(from, to, 1);
-    }
-    let path = dir.join("rig.toml");
-    std::fs::write(&path, text).expect("write rig");
-    path
-}
-
-fn run_scan(rig: &Path, out: &Path) -> serde_json::Value {
-    let output = Command::new(env!("CARGO_BIN_EXE_scanrig"))
-        .args(["scan", "--rig"])
-        .arg(rig)
-        .arg("--out")
-        .arg(out)
-        .output()
-        .expect("run scanrig");
-    assert!(
-        output.status.success(),
-        "scan failed:\nstdout: {}\nstderr: {}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    );
-    serde_json::from_slice(&std::fs::read(out.join("report.json")).expect("report.json written"))
-        .expect("report.json is JSON")
-}
-
-fn num(report: &serde_json::Value, section: &str, key: &str) -> f64 {
-    report[section][key].as_f64().unwrap_or_else(|| panic!("{section}.{key} missing in {report}"))
-}
+use scan_common::{derived_rig, num, repo, run_scan, scanrig};
 
 struct Figures {
     hull_iou: f64,
@@ -126,13 +89,7 @@ fn bad_shadow_lights_are_refused() {
         let dir = tempfile::tempdir().expect("tempdir");
         let rig = derived_rig(dir.path(), "config/rigs/shadow-carving.toml", &[(from, to)]);
         let out = dir.path().join("out");
-        let output = Command::new(env!("CARGO_BIN_EXE_scanrig"))
-            .args(["scan", "--rig"])
-            .arg(&rig)
-            .arg("--out")
-            .arg(&out)
-            .output()
-            .expect("run scanrig");
+        let output = scanrig().args(["scan", "--rig"]).arg(&rig).arg("--out").arg(&out).output().expect("run scanrig");
         let stderr = String::from_utf8_lossy(&output.stderr);
         assert!(!output.status.success(), "{to}: accepted");
         assert!(stderr.contains(expect), "{to}: stderr lacks `{expect}`: {stderr}");
