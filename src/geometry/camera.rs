@@ -177,6 +177,14 @@ impl CameraModel {
         self.pose.centre()
     }
 
+    /// True when every intrinsic and pose value is finite (no NaN or infinity from a bad file).
+    pub fn is_finite(&self) -> bool {
+        let i = &self.intrinsics;
+        [i.fx, i.fy, i.cx, i.cy, i.skew, i.k1, i.k2].iter().all(|x| x.is_finite())
+            && self.pose.rotation.iter().all(|x| x.is_finite())
+            && self.pose.translation.iter().all(|x| x.is_finite())
+    }
+
     /// This camera expressed in the object frame when the turntable is at `degrees`
     /// (the camera's pose is given in the rig frame).
     pub fn for_turntable_angle(&self, degrees: f64) -> CameraModel {

@@ -142,11 +142,7 @@ pub(crate) fn check_inputs(grid: &VoxelGrid, views: &[PhotoView<'_>], params: &P
         if v.image.dimensions() != size || v.mask.is_some_and(|m| (m.width(), m.height()) != size) {
             return Err(PhotoError::ImageSize { view: n, width: c.width, height: c.height });
         }
-        let i = &c.intrinsics;
-        let finite = [i.fx, i.fy, i.cx, i.cy, i.skew, i.k1, i.k2].iter().all(|x| x.is_finite())
-            && c.pose.rotation.iter().all(|x| x.is_finite())
-            && c.pose.translation.iter().all(|x| x.is_finite());
-        if !finite {
+        if !c.is_finite() {
             return Err(PhotoError::BadCamera { view: n });
         }
     }

@@ -430,11 +430,7 @@ fn check_views(views: &[View<'_>]) -> Result<(), CarveError> {
                 camera_height: c.height,
             });
         }
-        let i = &c.intrinsics;
-        let finite = [i.fx, i.fy, i.cx, i.cy, i.skew, i.k1, i.k2].iter().all(|x| x.is_finite())
-            && c.pose.rotation.iter().all(|x| x.is_finite())
-            && c.pose.translation.iter().all(|x| x.is_finite());
-        if !finite {
+        if !c.is_finite() {
             return Err(CarveError::BadCamera { view: n });
         }
     }

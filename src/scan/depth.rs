@@ -8,12 +8,11 @@
 //! Frames are written as `frames/pos_NNN_depth.png`: 16-bit grey, depth in units of 0.1 mm (0 = none).
 
 use std::path::Path;
-use std::sync::mpsc;
 use std::time::Instant;
 
 use super::report::{GroundTruth, Report, Timings, VisualHull};
 use super::{ScanError, ScanEvent};
-use crate::acquisition::{self, CancelToken, DepthView, Progress};
+use crate::acquisition::{self, CancelToken, DepthView};
 use crate::config::{DepthCameraConfig, RigConfig};
 use crate::devices::build_rig;
 use crate::geometry::{CameraModel, VoxelGrid};
@@ -101,71 +100,32 @@ pub fn run_depth_scan(
     let mut views: Vec<(CameraModel, Mask)> = Vec::with_capacity(config.scan.positions as usize);
     let (mut measured_pixels, mut integrate_s) = (0u64, 0.0f64);
 
-    let (tx, rx) = mpsc::sync_channel::<DepthView>(2);
-    let (progress_tx, progress_rx) = mpsc::channel::<Progress>();
     let plan = config.scan.clone();
-    let acq_cancel = cancel.clone();
-    let acquisition = std::thread::Builder::new()
-        .name("acquisition".into())
-        .spawn(move || {
+    let (summary, capture_s) = super::acquire_and_process(
+        &mut rig,
+        |rig, tx, progress| acquisition::run_depth_scan(rig, &plan, tx, cancel, progress),
+        events,
+        |view: DepthView, events| {
+            write_depth_png(&out.join("frames"), &view)?;
+            let Some(model) = camera else { return Ok(()) };
+            let cam = model.for_turntable_angle(view.angle_deg);
+            let f = &view.frame;
             let t = Instant::now();
-            let result = acquisition::run_depth_scan(&mut rig, &plan, &tx, &acq_cancel, &mut |p| {
-                let _ = progress_tx.send(p.clone());
-            });
-            (result, t.elapsed().as_secs_f64())
-        })
-        .map_err(|source| ScanError::OutputDir {
-            path: out.clone(),
-            what: "cannot start the acquisition thread",
-            source,
-        })?;
-
-    let mut pipeline_error = None;
-    for view in rx.iter() {
-        for p in progress_rx.try_iter() {
-            events(ScanEvent::Acquisition(p));
-        }
-        if let Err(e) = write_depth_png(&out.join("frames"), &view) {
-            pipeline_error = Some(e);
-            break;
-        }
-        let Some(model) = camera else { continue };
-        let cam = model.for_turntable_angle(view.angle_deg);
-        let f = &view.frame;
-        let t = Instant::now();
-        match tsdf.integrate(&cam, &f.depth_m) {
-            Ok(stats) => tracing::debug!(position = view.position, updated = stats.updated, "fused a depth map"),
-            Err(e) => {
-                pipeline_error = Some(ScanError::DepthFusion(e));
-                break;
-            }
-        }
-        integrate_s += t.elapsed().as_secs_f64();
-        let t = Instant::now();
-        let mask = Mask::from_fn(f.width, f.height, |u, v| f.depth_m[(v * f.width + u) as usize] > 0.0);
-        measured_pixels += mask.count() as u64;
-        timings.silhouette += t.elapsed().as_secs_f64();
-        let t = Instant::now();
-        let stats = match hull.add_view(&cam, &mask) {
-            Ok(s) => s,
-            Err(e) => {
-                pipeline_error = Some(ScanError::Carve(e));
-                break;
-            }
-        };
-        timings.carve += t.elapsed().as_secs_f64();
-        events(ScanEvent::ViewProcessed { position: view.position, occupied: stats.occupied });
-        views.push((cam, mask));
-    }
-    drop(rx);
-    let (acq_result, capture_s) = acquisition.join().map_err(|_| ScanError::AcquisitionPanicked)?;
-    for p in progress_rx.try_iter() {
-        events(ScanEvent::Acquisition(p));
-    }
-    if let Some(e) = pipeline_error {
-        return Err(e);
-    }
-    let summary = acq_result.map_err(ScanError::Acquisition)?;
+            let stats = tsdf.integrate(&cam, &f.depth_m).map_err(ScanError::DepthFusion)?;
+            tracing::debug!(position = view.position, updated = stats.updated, "fused a depth map");
+            integrate_s += t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let mask = Mask::from_fn(f.width, f.height, |u, v| f.depth_m[(v * f.width + u) as usize] > 0.0);
+            measured_pixels += mask.count() as u64;
+            timings.silhouette += t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let stats = hull.add_view(&cam, &mask).map_err(ScanError::Carve)?;
+            timings.carve += t.elapsed().as_secs_f64();
+            events(ScanEvent::ViewProcessed { position: view.position, occupied: stats.occupied });
+            views.push((cam, mask));
+            Ok(())
+        },
+    )?;
     timings.capture = capture_s;
     timings.carve += integrate_s;
     tracing::info!(views = tsdf.views(), seconds = integrate_s, "depth fusion done");

@@ -78,6 +78,9 @@ pub enum ScanError {
     /// Photo-consistency reconstruction failed.
     #[error("photo-consistency reconstruction failed")]
     Photo(#[source] crate::pipeline::PhotoError),
+    /// The acquisition thread could not be started.
+    #[error("cannot start the acquisition thread")]
+    StartAcquisition(#[source] std::io::Error),
     /// The acquisition thread died.
     #[error("the acquisition thread panicked")]
     AcquisitionPanicked,
@@ -103,6 +106,58 @@ pub enum ScanEvent {
     },
     /// The pipeline moved on to a final stage (`mesh`, `export`, `evaluate`).
     Stage(&'static str),
+}
+
+/// Run an acquisition `sequence` on a thread of its own (it owns the rig's devices for the whole
+/// sequence) while `process` handles each view on this thread as it arrives, over a bounded channel so
+/// a slow pipeline slows the rig instead of piling up frames. The sequence's progress is forwarded to
+/// `events`. The first error of `process` stops the pipeline: dropping the receiver makes the sequence
+/// stop with `PipelineGone` and park, and that error is returned rather than the acquisition's.
+/// Returns the acquisition summary and the sequence's busy time, seconds.
+pub(crate) fn acquire_and_process<V: Send>(
+    rig: &mut Rig,
+    sequence: impl FnOnce(
+            &mut Rig,
+            &mpsc::SyncSender<V>,
+            &mut dyn FnMut(&Progress),
+        ) -> Result<acquisition::AcquisitionSummary, AcquisitionError>
+        + Send,
+    events: &mut dyn FnMut(ScanEvent),
+    mut process: impl FnMut(V, &mut dyn FnMut(ScanEvent)) -> Result<(), ScanError>,
+) -> Result<(acquisition::AcquisitionSummary, f64), ScanError> {
+    let (tx, rx) = mpsc::sync_channel::<V>(4);
+    let (progress_tx, progress_rx) = mpsc::channel::<Progress>();
+    let mut pipeline_error = None;
+    let (result, busy_s) = std::thread::scope(|scope| {
+        let acquisition = std::thread::Builder::new()
+            .name("acquisition".into())
+            .spawn_scoped(scope, move || {
+                let t = Instant::now();
+                let result = sequence(rig, &tx, &mut |p| {
+                    let _ = progress_tx.send(p.clone());
+                });
+                (result, t.elapsed().as_secs_f64())
+            })
+            .map_err(ScanError::StartAcquisition)?;
+        for view in rx.iter() {
+            for p in progress_rx.try_iter() {
+                events(ScanEvent::Acquisition(p));
+            }
+            if let Err(e) = process(view, events) {
+                pipeline_error = Some(e);
+                break;
+            }
+        }
+        drop(rx);
+        acquisition.join().map_err(|_| ScanError::AcquisitionPanicked)
+    })?;
+    for p in progress_rx.try_iter() {
+        events(ScanEvent::Acquisition(p));
+    }
+    if let Some(e) = pipeline_error {
+        return Err(e);
+    }
+    Ok((result.map_err(ScanError::Acquisition)?, busy_s))
 }
 
 /// The silhouette parameters of a rig file.
@@ -192,53 +247,17 @@ fn scan_into(
         events(carve_one(position, meta.angle_deg, &image, &mut timings)?);
     }
 
-    let (tx, rx) = mpsc::sync_channel::<CapturedView>(4);
-    let (progress_tx, progress_rx) = mpsc::channel::<Progress>();
     let plan = config.scan.clone();
-    let mut pipeline_error = None;
-    // The acquisition thread owns the devices for the whole sequence.
-    let (acq_result, capture_s) = std::thread::scope(|scope| {
-        let acquisition = std::thread::Builder::new()
-            .name("acquisition".into())
-            .spawn_scoped(scope, move || {
-                let t = Instant::now();
-                let result = acquisition::run_turntable_scan_from(rig, &plan, first, &tx, cancel, &mut |p| {
-                    let _ = progress_tx.send(p.clone());
-                });
-                (result, t.elapsed().as_secs_f64())
-            })
-            .map_err(|source| ScanError::OutputDir {
-                path: out.path().to_owned(),
-                what: "cannot start the acquisition thread",
-                source,
-            })?;
-        for view in rx.iter() {
-            for p in progress_rx.try_iter() {
-                events(ScanEvent::Acquisition(p));
-            }
-            if let Err(e) = out.write_frame(&view) {
-                pipeline_error = Some(e);
-                break;
-            }
-            match carve_one(view.position, view.angle_deg, &view.frame.image, &mut timings) {
-                Ok(e) => events(e),
-                Err(e) => {
-                    pipeline_error = Some(e);
-                    break;
-                }
-            }
-        }
-        // Dropping the receiver makes a still-running acquisition stop with PipelineGone.
-        drop(rx);
-        acquisition.join().map_err(|_| ScanError::AcquisitionPanicked)
-    })?;
-    for p in progress_rx.try_iter() {
-        events(ScanEvent::Acquisition(p));
-    }
-    if let Some(e) = pipeline_error {
-        return Err(e);
-    }
-    let mut summary = acq_result.map_err(ScanError::Acquisition)?;
+    let (mut summary, capture_s) = acquire_and_process(
+        rig,
+        |rig, tx, progress| acquisition::run_turntable_scan_from(rig, &plan, first, tx, cancel, progress),
+        events,
+        |view: CapturedView, events| {
+            out.write_frame(&view)?;
+            events(carve_one(view.position, view.angle_deg, &view.frame.image, &mut timings)?);
+            Ok(())
+        },
+    )?;
     summary.views += first;
     timings.capture = capture_s;
 

@@ -6,7 +6,6 @@
 //! Frames are written as `frames/pos_NNN_ambient.png` and `frames/pos_NNN_light_K.png`.
 
 use std::path::{Path, PathBuf};
-use std::sync::mpsc;
 use std::time::Instant;
 
 use image::RgbImage;
@@ -15,7 +14,7 @@ use nalgebra::Vector3;
 use super::output::{self, OutputDir};
 use super::report::{Report, Timings, VisualHull};
 use super::{silhouette_params, ScanError, ScanEvent};
-use crate::acquisition::{self, CancelToken, PerLightView, Progress};
+use crate::acquisition::{self, CancelToken, PerLightView};
 use crate::config::RigConfig;
 use crate::devices::build_rig;
 use crate::geometry::{turntable_rotation, CameraModel, VoxelGrid};
@@ -159,57 +158,24 @@ pub fn run_shadow_scan(
     let mut shadow_views: Vec<(CameraModel, Vector3<f64>, Mask)> = Vec::new();
     let (mut shadow_pixels, mut unknown_pixels, mut detect_s) = (0u64, 0u64, 0.0f64);
 
-    let (tx, rx) = mpsc::sync_channel::<PerLightView>(2);
-    let (progress_tx, progress_rx) = mpsc::channel::<Progress>();
-    let acq_plan = plan.clone();
-    let acq_cancel = cancel.clone();
-    let acquisition = std::thread::Builder::new()
-        .name("acquisition".into())
-        .spawn(move || {
-            let t = Instant::now();
-            let result = acquisition::run_per_light_scan(&mut rig, &acq_plan, &tx, &acq_cancel, &mut |p| {
-                let _ = progress_tx.send(p.clone());
-            });
-            (result, t.elapsed().as_secs_f64())
-        })
-        .map_err(|source| ScanError::OutputDir {
-            path: out.path().to_owned(),
-            what: "cannot start the acquisition thread",
-            source,
-        })?;
-
-    let mut pipeline_error = None;
-    for view in rx.iter() {
-        for p in progress_rx.try_iter() {
-            events(ScanEvent::Acquisition(p));
-        }
-        match process_view(&out, &view, &camera, &lights, &params, &shadow_params, &mut carver, &mut timings) {
-            Ok(done) => {
-                shadow_pixels += done.shadows.iter().map(|m| m.count() as u64).sum::<u64>();
-                unknown_pixels += done.unknown;
-                detect_s += done.detect_s;
-                let to_obj = turntable_rotation(-view.angle_deg);
-                for (mask, light) in done.shadows.into_iter().zip(&lights) {
-                    shadow_views.push((done.camera, to_obj * light, mask));
-                }
-                events(ScanEvent::ViewProcessed { position: view.position, occupied: done.occupied });
-                views.push((done.camera, done.silhouette));
+    let (summary, capture_s) = super::acquire_and_process(
+        &mut rig,
+        |rig, tx, progress| acquisition::run_per_light_scan(rig, &plan, tx, cancel, progress),
+        events,
+        |view: PerLightView, events| {
+            let done = process_view(&out, &view, &camera, &lights, &params, &shadow_params, &mut carver, &mut timings)?;
+            shadow_pixels += done.shadows.iter().map(|m| m.count() as u64).sum::<u64>();
+            unknown_pixels += done.unknown;
+            detect_s += done.detect_s;
+            let to_obj = turntable_rotation(-view.angle_deg);
+            for (mask, light) in done.shadows.into_iter().zip(&lights) {
+                shadow_views.push((done.camera, to_obj * light, mask));
             }
-            Err(e) => {
-                pipeline_error = Some(e);
-                break;
-            }
-        }
-    }
-    drop(rx);
-    let (acq_result, capture_s) = acquisition.join().map_err(|_| ScanError::AcquisitionPanicked)?;
-    for p in progress_rx.try_iter() {
-        events(ScanEvent::Acquisition(p));
-    }
-    if let Some(e) = pipeline_error {
-        return Err(e);
-    }
-    let summary = acq_result.map_err(ScanError::Acquisition)?;
+            events(ScanEvent::ViewProcessed { position: view.position, occupied: done.occupied });
+            views.push((done.camera, done.silhouette));
+            Ok(())
+        },
+    )?;
     timings.capture = capture_s;
 
     events(ScanEvent::Stage("shadow carving"));
