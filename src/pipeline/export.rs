@@ -34,6 +34,12 @@ pub enum ExportError {
     },
 }
 
+/// Whether a file name is one of [`write_atomic`]'s temporary files (`.NAME.tmp-PID`): left behind
+/// only when the writing process died before its rename, so it never holds a complete result.
+pub fn is_atomic_temp(name: &str) -> bool {
+    name.starts_with('.') && name.contains(".tmp-")
+}
+
 /// Write `bytes` to `path` atomically (temporary file in the same directory, fsync, rename).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ExportError> {
     let io = |source| ExportError::Io { path: path.to_path_buf(), source };

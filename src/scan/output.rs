@@ -74,12 +74,31 @@ impl std::fmt::Debug for Results<'_> {
     }
 }
 
+/// Remove the temporary files of atomic writes that a killed process left in `dir` and `dir/frames`
+/// (see [`export::is_atomic_temp`]); complete files are never touched.
+fn remove_partial_writes(dir: &Path) -> Result<(), ScanError> {
+    for d in [dir.to_owned(), dir.join("frames")] {
+        let Ok(entries) = std::fs::read_dir(&d) else { continue };
+        for entry in entries.flatten() {
+            if export::is_atomic_temp(&entry.file_name().to_string_lossy()) {
+                std::fs::remove_file(entry.path()).map_err(|source| ScanError::OutputDir {
+                    path: entry.path(),
+                    what: "cannot remove a partial write left by an earlier run",
+                    source,
+                })?;
+            }
+        }
+    }
+    Ok(())
+}
+
 impl OutputDir {
     /// Create `path` if needed, check that it is writable, and remove a previous `report.json` and
     /// previous frames so that nothing from an earlier run is presented as this run's result.
     pub fn prepare(path: &Path) -> Result<OutputDir, ScanError> {
         let err = |what: &'static str| move |source| ScanError::OutputDir { path: path.to_owned(), what, source };
         std::fs::create_dir_all(path).map_err(err("cannot create it"))?;
+        remove_partial_writes(path)?;
         let probe = path.join(".scanrig-write-test");
         std::fs::write(&probe, b"ok").map_err(err("is not writable"))?;
         std::fs::remove_file(&probe).map_err(err("is not writable"))?;
@@ -107,6 +126,7 @@ impl OutputDir {
     pub fn reopen(path: &Path) -> Result<OutputDir, ScanError> {
         let err = |what: &'static str| move |source| ScanError::OutputDir { path: path.to_owned(), what, source };
         std::fs::create_dir_all(path).map_err(err("cannot create it"))?;
+        remove_partial_writes(path)?;
         match std::fs::remove_file(path.join("report.json")) {
             Ok(()) => {}
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
@@ -261,5 +281,26 @@ impl OutputDir {
         let json = serde_json::to_vec_pretty(&report).map_err(ScanError::EncodeReport)?;
         write_atomic(&p("report.json"), &json).map_err(ScanError::Export)?;
         Ok(report)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reopening_removes_partial_writes_and_keeps_complete_frames() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let frames = dir.path().join("frames");
+        std::fs::create_dir_all(&frames).expect("mkdir");
+        std::fs::write(frames.join("pos_000.png"), b"complete").expect("write");
+        std::fs::write(frames.join(".pos_001.json.tmp-4242"), b"half").expect("write");
+        std::fs::write(dir.path().join(".model.ply.tmp-4242"), b"half").expect("write");
+        let out = OutputDir::reopen(dir.path()).expect("reopen");
+        assert!(frames.join("pos_000.png").is_file());
+        assert!(!frames.join(".pos_001.json.tmp-4242").exists());
+        assert!(!dir.path().join(".model.ply.tmp-4242").exists());
+        assert_eq!(out.path(), dir.path());
+        assert!(export::is_atomic_temp(".report.json.tmp-1") && !export::is_atomic_temp("pos_000.png"));
     }
 }
