@@ -35,6 +35,7 @@ fn every_position_yields_one_fresh_frame_and_the_rig_is_parked() {
     assert_eq!(summary.views, 6);
     let depth = match &config.camera {
         crate::config::CameraConfig::Sim(c) => c.buffer_depth,
+        other => panic!("a simulated camera, not {other:?}"),
     };
     for (i, v) in views.iter().enumerate() {
         assert_eq!(v.position, i);

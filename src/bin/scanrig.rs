@@ -91,6 +91,14 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// List cameras, serial ports, framebuffers and depth cameras with their stable identities and
+    /// capabilities, and the rig-file lines that select each.
+    Devices {
+        /// Look for devices below this directory instead of `/` (a fake `sys/` + `dev/` tree; also
+        /// the SCANRIG_SYSFS_ROOT environment variable).
+        #[arg(long, hide = true)]
+        root: Option<PathBuf>,
+    },
     /// Check a rig file and report every problem in it.
     Validate {
         /// The rig file (TOML).
@@ -242,6 +250,12 @@ fn decode_capture(
 
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Devices { root } => {
+            let root =
+                root.map_or_else(scanrig::devices::sysfs::SysRoot::from_env, scanrig::devices::sysfs::SysRoot::new);
+            print!("{}", scanrig::devices::discovery::render(&scanrig::devices::discovery::discover(&root)));
+            Ok(())
+        }
         Command::Validate { rig } => {
             scanrig::config::load(&rig)?;
             println!("{}: ok", rig.display());

@@ -288,14 +288,40 @@ impl RigConfig {
                     bad("camera.noise_sigma", "must be a non-negative number".into());
                 }
             }
+            CameraConfig::V4l2(c) | CameraConfig::Uvc(c) => {
+                check_camera(&mut bad, "camera", c.width, c.height, &c.calibration);
+                crate::devices::hardware::validate_camera(&self.camera, c, &mut bad);
+            }
         }
-        if let Some(ProjectorConfig::Sim(p)) = &self.projector {
-            uses_sim = true;
-            check_camera(&mut bad, "projector", p.width, p.height, &p.calibration);
+        match &self.projector {
+            Some(ProjectorConfig::Sim(p)) => {
+                uses_sim = true;
+                check_camera(&mut bad, "projector", p.width, p.height, &p.calibration);
+            }
+            Some(ProjectorConfig::Fbdev(p)) => {
+                if let Some(cal) = &p.calibration {
+                    check_camera(&mut bad, "projector", p.width, p.height, cal);
+                }
+                crate::devices::hardware::validate_fbdev(p, &mut bad);
+            }
+            None => {}
         }
-        if let Some(DepthCameraConfig::Sim(d)) = &self.depth_camera {
-            uses_sim = true;
-            check_camera(&mut bad, "depth_camera", d.width, d.height, &d.calibration);
+        match &self.depth_camera {
+            Some(DepthCameraConfig::Sim(d)) => {
+                uses_sim = true;
+                check_camera(&mut bad, "depth_camera", d.width, d.height, &d.calibration);
+            }
+            Some(DepthCameraConfig::Freenect(d)) => {
+                check_camera(
+                    &mut bad,
+                    "depth_camera",
+                    FreenectDepthConfig::WIDTH,
+                    FreenectDepthConfig::HEIGHT,
+                    &d.calibration,
+                );
+                crate::devices::hardware::validate_freenect(d, &mut bad);
+            }
+            None => {}
         }
         if self.lights.as_ref().is_some_and(|l| l.kind == LightsKind::Sim) {
             uses_sim = true;

@@ -306,6 +306,10 @@ fn red() -> [u8; 3] {
 pub enum CameraConfig {
     /// `kind = "sim"`: renders the simulated world.
     Sim(SimCameraConfig),
+    /// `kind = "v4l2"`: a V4L2 camera (cargo feature `v4l`).
+    V4l2(RealCameraConfig),
+    /// `kind = "uvc"`: a UVC camera through nokhwa (cargo feature `nokhwa`), for platforms without V4L2.
+    Uvc(RealCameraConfig),
 }
 
 impl CameraConfig {
@@ -313,8 +317,42 @@ impl CameraConfig {
     pub fn model(&self) -> CameraModel {
         match self {
             CameraConfig::Sim(c) => c.calibration.model(c.width, c.height),
+            CameraConfig::V4l2(c) | CameraConfig::Uvc(c) => c.calibration.model(c.width, c.height),
         }
     }
+}
+
+/// `[camera] kind = "v4l2"` or `"uvc"`: a real camera.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RealCameraConfig {
+    /// Which camera, by a stable identity: `/dev/v4l/by-id/...`, `usb:VID:PID[:SERIAL]`,
+    /// `bus:usb-0000:00:14.0-1` (V4L2 bus info) or `card:NAME`; `scanrig devices` lists them.
+    pub device: String,
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// Pixel format: `grey`, `yuyv`, `mjpeg` or `rgb24`; absent = the first the camera offers at this
+    /// size, uncompressed preferred.
+    #[serde(default)]
+    pub format: Option<crate::devices::camera::pixel::PixelFormat>,
+    /// Frame rate, frames per second; absent = the camera's default.
+    #[serde(default)]
+    pub fps: Option<u32>,
+    /// Driver buffers (memory-mapped); after a scene change up to this many queued frames are stale.
+    #[serde(default = "default_real_buffers")]
+    pub buffers: u32,
+    /// `[camera.controls]`: exposure, gain, white balance, focus and further controls locked for the
+    /// scan and restored after it.
+    #[serde(default)]
+    pub controls: crate::devices::camera::controls::ManualControls,
+    /// `[camera.calibration]`.
+    pub calibration: CameraCalibration,
+}
+
+fn default_real_buffers() -> u32 {
+    4
 }
 
 /// `[camera] kind = "sim"`.
@@ -408,6 +446,36 @@ impl PoseConfig {
 pub enum ProjectorConfig {
     /// `kind = "sim"`: projects onto the simulated scene.
     Sim(SimProjectorConfig),
+    /// `kind = "fbdev"`: a projector on a video output driven as a Linux framebuffer, no desktop
+    /// (cargo feature `fbdev`).
+    Fbdev(FbdevProjectorConfig),
+}
+
+/// `[projector] kind = "fbdev"`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FbdevProjectorConfig {
+    /// The framebuffer device, e.g. `/dev/fb1` (`scanrig devices` lists them with their sizes).
+    pub device: String,
+    /// Expected width, projector pixels (the framebuffer's must match).
+    pub width: u32,
+    /// Expected height, projector pixels.
+    pub height: u32,
+    /// The projector's own delay from receiving a frame to showing it, milliseconds (measure it:
+    /// project a pattern and find the first camera frame that shows it).
+    #[serde(default)]
+    pub latency_ms: u64,
+    /// Refresh rate to assume when the framebuffer reports no timing and cannot wait for vertical
+    /// blank, hertz.
+    #[serde(default = "default_refresh_hz")]
+    pub refresh_hz: f64,
+    /// `[projector.calibration]`: intrinsics and pose in the rig frame, for triangulation.
+    #[serde(default)]
+    pub calibration: Option<CameraCalibration>,
+}
+
+fn default_refresh_hz() -> f64 {
+    60.0
 }
 
 /// `[projector] kind = "sim"`: a projector modelled as an inverse pinhole camera.
@@ -432,6 +500,31 @@ pub struct SimProjectorConfig {
 pub enum DepthCameraConfig {
     /// `kind = "sim"`: depth rendered from the simulated scene.
     Sim(SimDepthCameraConfig),
+    /// `kind = "freenect"`: a Kinect v1 through libfreenect (cargo feature `freenect`).
+    Freenect(FreenectDepthConfig),
+}
+
+/// `[depth_camera] kind = "freenect"`: a Kinect v1, depth 640x480 in millimetres.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FreenectDepthConfig {
+    /// The Kinect's camera serial number (stable; `scanrig devices` lists it); absent = the first.
+    #[serde(default)]
+    pub serial: Option<String>,
+    /// Depth registered to the RGB camera (true) or in the infrared camera's own frame (false, the
+    /// frame the calibration below then describes).
+    #[serde(default)]
+    pub registered: bool,
+    /// `[depth_camera.calibration]`: of the infrared camera (or the RGB camera when registered), at
+    /// 640x480.
+    pub calibration: CameraCalibration,
+}
+
+impl FreenectDepthConfig {
+    /// Depth map width, pixels.
+    pub const WIDTH: u32 = 640;
+    /// Depth map height, pixels.
+    pub const HEIGHT: u32 = 480;
 }
 
 /// `[depth_camera] kind = "sim"`.

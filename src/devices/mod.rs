@@ -7,10 +7,13 @@
 
 pub mod camera;
 pub mod depth;
+pub mod discovery;
+pub mod hardware;
 pub mod lights;
 pub mod projector;
 pub mod registry;
 pub mod serial;
+pub mod sysfs;
 pub mod turntable;
 
 use std::time::Duration;

@@ -74,18 +74,21 @@ pub fn build_rig(config: &RigConfig) -> Result<Rig, DeviceError> {
     };
     let camera: Box<dyn Camera> = match &config.camera {
         CameraConfig::Sim(c) => Box::new(super::camera::sim::SimCamera::new(need_sim("camera")?, c)),
+        real @ (CameraConfig::V4l2(_) | CameraConfig::Uvc(_)) => super::hardware::open_camera(real)?,
     };
     let projector: Option<Box<dyn Projector>> = match &config.projector {
         None => None,
         Some(ProjectorConfig::Sim(p)) => {
             Some(Box::new(super::projector::sim::SimProjector::new(need_sim("projector")?, p)))
         }
+        Some(ProjectorConfig::Fbdev(p)) => Some(super::hardware::open_fbdev(p)?),
     };
     let depth_camera: Option<Box<dyn DepthCamera>> = match &config.depth_camera {
         None => None,
         Some(DepthCameraConfig::Sim(d)) => {
             Some(Box::new(super::depth::sim::SimDepthCamera::new(need_sim("depth_camera")?, d)))
         }
+        Some(DepthCameraConfig::Freenect(d)) => Some(super::hardware::open_freenect(d)?),
     };
     Ok(Rig { turntable, lights, camera, projector, depth_camera, sim, serial })
 }

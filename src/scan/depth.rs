@@ -44,6 +44,9 @@ pub struct DepthFusionSummary {
 fn depth_camera_model(config: &DepthCameraConfig) -> CameraModel {
     match config {
         DepthCameraConfig::Sim(c) => c.calibration.model(c.width, c.height),
+        DepthCameraConfig::Freenect(c) => {
+            c.calibration.model(crate::config::FreenectDepthConfig::WIDTH, crate::config::FreenectDepthConfig::HEIGHT)
+        }
     }
 }
 

@@ -20,7 +20,7 @@ pub(crate) fn small_rig(scene: &str) -> RigConfig {
     if let Some(s) = rig.sim.as_mut() {
         s.scene = scene.to_owned();
     }
-    let CameraConfig::Sim(c) = &mut rig.camera;
+    let CameraConfig::Sim(c) = &mut rig.camera else { panic!("simulated.toml has a simulated camera") };
     let k = &mut c.calibration.intrinsics;
     (c.width, c.height) = (160, 120);
     (k.fx, k.fy, k.cx, k.cy) = (k.fx / 4.0, k.fy / 4.0, k.cx / 4.0, k.cy / 4.0);

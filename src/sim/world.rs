@@ -81,10 +81,12 @@ impl SimWorld {
                     .collect::<Result<Vec<_>, _>>()?,
             ),
         };
-        let projector = rig.projector.as_ref().map(|p| match p {
+        let projector = rig.projector.as_ref().and_then(|p| match p {
             ProjectorConfig::Sim(p) => {
-                ProjectorModel { model: p.calibration.model(p.width, p.height), intensity: p.intensity }
+                Some(ProjectorModel { model: p.calibration.model(p.width, p.height), intensity: p.intensity })
             }
+            // A real projector lights the real world, not the simulated one.
+            ProjectorConfig::Fbdev(_) => None,
         });
         if !(sim.ambient.is_finite() && (0.0..=1.0).contains(&sim.ambient)) {
             return Err(SimError::InvalidAmbient { ambient: sim.ambient }.to_device_error("sim", "ambient"));

@@ -1,6 +1,13 @@
 //! Cameras: a stream of frames with metadata.
 
+pub mod controls;
+pub mod pixel;
 pub mod sim;
+pub mod stream;
+#[cfg(feature = "nokhwa")]
+pub mod uvc;
+#[cfg(feature = "v4l")]
+pub mod v4l2;
 
 use std::time::{Duration, Instant};
 

@@ -100,7 +100,7 @@ mod tests {
     fn camera(scene: &str, depth: u32) -> (SimCamera, SimWorld) {
         let rig = small_rig(scene);
         let world = SimWorld::from_config(rig.sim.as_ref().expect("sim"), &rig).expect("world");
-        let crate::config::CameraConfig::Sim(mut c) = rig.camera.clone();
+        let crate::config::CameraConfig::Sim(mut c) = rig.camera.clone() else { panic!("simulated camera") };
         c.buffer_depth = depth;
         c.noise_sigma = 0.0;
         (SimCamera::new(world.clone(), &c), world)
@@ -146,7 +146,7 @@ mod tests {
 
         // Same seed and sequence: same noise; next sequence: different noise.
         let rig = small_rig("box");
-        let crate::config::CameraConfig::Sim(mut c) = rig.camera.clone();
+        let crate::config::CameraConfig::Sim(mut c) = rig.camera.clone() else { panic!("simulated camera") };
         c.noise_sigma = 2.0;
         c.buffer_depth = 1;
         let mut n1 = SimCamera::new(world.clone(), &c);

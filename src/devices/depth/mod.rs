@@ -1,5 +1,7 @@
 //! Depth cameras: frames of metric depth.
 
+#[cfg(feature = "freenect")]
+pub mod freenect;
 pub mod sim;
 
 use std::time::{Duration, Instant};

@@ -73,7 +73,9 @@ mod tests {
     fn depth_agrees_with_ray_intersection() {
         let rig = small_rig("cup");
         let world = SimWorld::from_config(rig.sim.as_ref().expect("sim"), &rig).expect("world");
-        let crate::config::DepthCameraConfig::Sim(c) = rig.depth_camera.as_ref().expect("depth camera");
+        let Some(crate::config::DepthCameraConfig::Sim(c)) = rig.depth_camera.as_ref() else {
+            panic!("simulated depth camera")
+        };
         let mut c = c.clone();
         c.noise_sigma_m = 0.0;
         let mut cam = SimDepthCamera::new(world.clone(), &c);

@@ -1,5 +1,8 @@
 //! The projector: shows pattern images (structured light).
 
+#[cfg(feature = "fbdev")]
+pub mod fbdev;
+pub mod framebuffer;
 pub mod sim;
 
 use std::sync::Arc;

@@ -49,7 +49,9 @@ mod tests {
     fn show_checks_the_size_and_blank_clears() {
         let rig = small_rig("box");
         let world = crate::sim::SimWorld::from_config(rig.sim.as_ref().expect("sim"), &rig).expect("world");
-        let crate::config::ProjectorConfig::Sim(pc) = rig.projector.as_ref().expect("projector");
+        let Some(crate::config::ProjectorConfig::Sim(pc)) = rig.projector.as_ref() else {
+            panic!("simulated projector")
+        };
         let mut p = SimProjector::new(world.clone(), pc);
         let (w, h) = p.resolution();
         let t = Duration::from_millis(10);
