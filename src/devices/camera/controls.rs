@@ -157,11 +157,21 @@ impl ControlLock {
     /// error; a missing *auto* control is skipped (some cameras have only the manual one). On error
     /// the controls already changed are put back before returning.
     pub fn apply(backend: &mut dyn ControlBackend, settings: &ManualControls) -> Result<Self, ControlError> {
-        let mut plan: Vec<(u32, String, Option<i64>, &'static str, String)> = Vec::new();
-        // (id, name, value, kind, setting). kind "auto" entries are optional.
+        /// One write: control id, name, value, whether the device may lack it (auto switches), and
+        /// the rig-file setting it comes from.
+        struct Step {
+            id: u32,
+            name: String,
+            value: i64,
+            optional: bool,
+            setting: String,
+        }
+        let mut plan: Vec<Step> = Vec::new();
         let mut manual = |auto: (u32, &str, i64), value: (u32, &str, i64), setting: &str| {
-            plan.push((auto.0, auto.1.to_owned(), Some(auto.2), "auto", setting.to_owned()));
-            plan.push((value.0, value.1.to_owned(), Some(value.2), "value", setting.to_owned()));
+            let (id, name, v) = auto;
+            plan.push(Step { id, name: name.to_owned(), value: v, optional: true, setting: setting.to_owned() });
+            let (id, name, v) = value;
+            plan.push(Step { id, name: name.to_owned(), value: v, optional: false, setting: setting.to_owned() });
         };
         if let Some(us) = settings.exposure_us {
             manual(
@@ -191,14 +201,13 @@ impl ControlLock {
             let Some(id) = backend.id_by_name(name) else {
                 return Err(ControlError::Missing { name: name.clone(), setting: format!("controls.{name}") });
             };
-            plan.push((id, name.clone(), Some(value), "value", format!("controls.{name}")));
+            plan.push(Step { id, name: name.clone(), value, optional: false, setting: format!("controls.{name}") });
         }
 
         let mut lock = ControlLock::default();
-        for (id, name, value, kind, setting) in plan {
-            let Some(value) = value else { continue };
+        for Step { id, name, value, optional, setting } in plan {
             let Some(range) = backend.range(id) else {
-                if kind == "auto" {
+                if optional {
                     continue;
                 }
                 lock.restore(backend);
