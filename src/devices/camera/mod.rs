@@ -4,6 +4,7 @@ pub mod controls;
 pub mod pixel;
 pub mod sim;
 pub mod stream;
+pub mod streaming;
 #[cfg(feature = "nokhwa")]
 pub mod uvc;
 #[cfg(feature = "v4l")]

@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::Arc;
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant, SystemTime};
+use std::time::Duration;
 
 use nokhwa::pixel_format::RgbFormat;
 use nokhwa::utils::{
@@ -21,8 +21,9 @@ use nokhwa::utils::{
 use nokhwa::Camera as NokhwaCamera;
 
 use super::controls::{cid, ControlBackend, ControlLock, ControlRange};
-use super::pixel::{to_rgb, PixelFormat};
-use super::stream::{exposure_start, TimestampSource};
+use super::pixel::PixelFormat;
+use super::stream::TimestampSource;
+use super::streaming::{BufferClock, FrameAssembler, RawFrame, RawStream};
 use crate::config::RealCameraConfig;
 use crate::devices::sysfs::{CameraSelector, SysRoot};
 use crate::devices::DeviceError;
@@ -109,21 +110,45 @@ impl ControlBackend for NokhwaControls<'_> {
     }
 }
 
-/// What the capture thread hands over.
-type Delivery = Result<(Vec<u8>, Option<Duration>, Instant), String>;
+/// What the capture thread hands over: the bytes, nokhwa's wall-clock stamp, and a sequence number
+/// counting every frame nokhwa returned (including ones the full channel dropped).
+type Delivery = Result<(Vec<u8>, Option<Duration>, u32), String>;
+
+/// The capture thread's channel as a [`RawStream`].
+#[derive(Debug)]
+struct Channel {
+    frames: Receiver<Delivery>,
+    current: Vec<u8>,
+}
+
+impl RawStream for Channel {
+    fn next_buffer(&mut self, timeout: Duration) -> std::io::Result<RawFrame<'_>> {
+        let (data, stamp, sequence) = match self.frames.recv_timeout(timeout) {
+            Ok(Ok(d)) => d,
+            Ok(Err(e)) => return Err(gone(std::io::Error::other(e))),
+            Err(RecvTimeoutError::Timeout) => return Err(std::io::Error::from(std::io::ErrorKind::TimedOut)),
+            Err(RecvTimeoutError::Disconnected) => return Err(gone(std::io::Error::other("capture thread ended"))),
+        };
+        self.current = data;
+        // nokhwa stamps the end of the frame in wall-clock time (UVC timestamps end of frame).
+        let clock = stamp.map_or(BufferClock::None, |ts| BufferClock::Wall(ts, TimestampSource::EndOfFrame));
+        Ok(RawFrame { data: &self.current, sequence, clock, corrupt: false })
+    }
+}
+
+/// A capture failure from nokhwa means the camera went away: reported as `ENODEV`.
+fn gone(e: std::io::Error) -> std::io::Error {
+    tracing::warn!(error = %e, "UVC capture failed");
+    std::io::Error::from_raw_os_error(libc::ENODEV)
+}
 
 /// A UVC camera through nokhwa.
 #[derive(Debug)]
 pub struct UvcCamera {
-    width: u32,
-    height: u32,
-    format: PixelFormat,
-    frames: Receiver<Delivery>,
+    stream: Channel,
+    frames: FrameAssembler,
     stop: Arc<AtomicBool>,
     dropped: Arc<AtomicU64>,
-    next_sequence: u64,
-    exposure: Duration,
-    period: Duration,
     worker: Option<JoinHandle<()>>,
 }
 
@@ -198,20 +223,16 @@ impl UvcCamera {
         let period = Duration::from_secs_f64(1.0 / fps.max(1) as f64);
         let exposure = config.controls.exposure_us.map_or(period, |us| Duration::from_micros(us as u64));
         Ok(UvcCamera {
-            width: config.width,
-            height: config.height,
-            format,
-            frames: rx,
+            stream: Channel { frames: rx, current: Vec::new() },
+            frames: FrameAssembler::new(NAME, format, (config.width, config.height), 0, exposure, period),
             stop,
             dropped,
-            next_sequence: 0,
-            exposure,
-            period,
             worker: Some(worker),
         })
     }
 
-    /// Frames dropped because the consumer was slower than the camera.
+    /// Frames dropped because the consumer was slower than the camera (also counted as sequence
+    /// gaps by the frames that follow them).
     pub fn dropped_frames(&self) -> u64 {
         self.dropped.load(Ordering::Relaxed)
     }
@@ -269,11 +290,13 @@ fn capture_loop(
     stop: &AtomicBool,
     dropped: &AtomicU64,
 ) {
+    let mut sequence: u32 = 0;
     while !stop.load(Ordering::Relaxed) {
         let delivery = match camera.frame() {
-            Ok(buf) => Ok((buf.buffer().to_vec(), buf.capture_timestamp(), Instant::now())),
+            Ok(buf) => Ok((buf.buffer().to_vec(), buf.capture_timestamp(), sequence)),
             Err(e) => Err(e.to_string()),
         };
+        sequence = sequence.wrapping_add(1);
         let failed = delivery.is_err();
         match tx.try_send(delivery) {
             Ok(()) => {}
@@ -294,35 +317,12 @@ fn capture_loop(
 
 impl super::Camera for UvcCamera {
     fn info(&self) -> super::CameraInfo {
-        super::CameraInfo { width: self.width, height: self.height }
+        let (width, height) = self.frames.size();
+        super::CameraInfo { width, height }
     }
 
     fn capture(&mut self, timeout: Duration) -> Result<super::Frame, DeviceError> {
-        let (data, wall_ts, received) = match self.frames.recv_timeout(timeout) {
-            Ok(Ok(d)) => d,
-            Ok(Err(e)) => {
-                return Err(DeviceError::Disconnected { device: NAME.into(), source: Some(std::io::Error::other(e)) })
-            }
-            Err(RecvTimeoutError::Timeout) => {
-                return Err(DeviceError::Timeout { device: NAME.into(), waiting_for: "a frame", timeout })
-            }
-            Err(RecvTimeoutError::Disconnected) => {
-                return Err(DeviceError::Disconnected { device: NAME.into(), source: None })
-            }
-        };
-        // nokhwa stamps frames with wall-clock time (end of frame); without a stamp, the arrival.
-        let start = match (wall_ts, SystemTime::now().duration_since(SystemTime::UNIX_EPOCH)) {
-            (Some(ts), Ok(now_wall)) => {
-                let now = Instant::now();
-                exposure_start(ts, TimestampSource::EndOfFrame, self.exposure, self.period, now_wall, now)
-            }
-            _ => received.checked_sub(self.exposure + self.period).unwrap_or(received),
-        };
-        let image = to_rgb(self.format, self.width, self.height, 0, &data)
-            .map_err(|e| DeviceError::Protocol { device: NAME.into(), detail: e.to_string() })?;
-        let sequence = self.next_sequence;
-        self.next_sequence += 1 + self.dropped.swap(0, Ordering::Relaxed);
-        Ok(super::Frame { sequence, exposure_start: start, image })
+        self.frames.capture(&mut self.stream, timeout)
     }
 }
 

@@ -18,7 +18,7 @@
 //! others.
 
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use v4l::buffer::{Flags as BufFlags, Type as BufType};
 use v4l::control::{Control, Description as ControlDescription, Type as ControlType, Value};
@@ -29,8 +29,9 @@ use v4l::video::Capture;
 use v4l::FourCC;
 
 use super::controls::{cid, exposure_v4l2_to_us, ControlBackend, ControlLock, ControlRange};
-use super::pixel::{to_rgb, PixelFormat};
-use super::stream::{exposure_start, monotonic_now, SequenceTracker, TimestampSource};
+use super::pixel::PixelFormat;
+use super::stream::TimestampSource;
+use super::streaming::{BufferClock, FrameAssembler, RawFrame, RawStream};
 use crate::config::RealCameraConfig;
 use crate::devices::sysfs::{CameraSelector, SysRoot};
 use crate::devices::DeviceError;
@@ -96,33 +97,47 @@ impl ControlBackend for V4l2Controls<'_> {
     }
 }
 
+/// The memory-mapped stream as a [`RawStream`].
+struct Mmap(MmapStream<'static>);
+
+impl RawStream for Mmap {
+    fn next_buffer(&mut self, timeout: Duration) -> std::io::Result<RawFrame<'_>> {
+        self.0.set_timeout(timeout);
+        let (buf, meta) = CaptureStream::next(&mut self.0)?;
+        let ts = Duration::from(meta.timestamp);
+        let source = if (meta.flags & BufFlags::TSTAMP_SRC_MASK) == BufFlags::TSTAMP_SRC_SOE {
+            TimestampSource::StartOfExposure
+        } else {
+            TimestampSource::EndOfFrame
+        };
+        let clock = if (meta.flags & BufFlags::TIMESTAMP_MASK) == BufFlags::TIMESTAMP_MONOTONIC {
+            BufferClock::Monotonic(ts, source)
+        } else {
+            BufferClock::None
+        };
+        let used = (meta.bytesused as usize).min(buf.len());
+        Ok(RawFrame {
+            data: if used == 0 { buf } else { &buf[..used] },
+            sequence: meta.sequence,
+            clock,
+            corrupt: meta.flags.contains(BufFlags::ERROR),
+        })
+    }
+}
+
 /// A V4L2 camera streaming through memory-mapped buffers.
 pub struct V4l2Camera {
     // Dropped before `device`: the stream's buffers belong to the open device.
-    stream: MmapStream<'static>,
+    stream: Mmap,
     device: Device,
     path: PathBuf,
-    format: PixelFormat,
-    width: u32,
-    height: u32,
-    stride: usize,
+    frames: FrameAssembler,
     lock: ControlLock,
-    tracker: SequenceTracker,
-    /// Exposure time, for end-of-frame timestamps.
-    exposure: Duration,
-    /// Frame period (readout time bound), for end-of-frame timestamps.
-    period: Duration,
 }
 
 impl std::fmt::Debug for V4l2Camera {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("V4l2Camera")
-            .field("path", &self.path)
-            .field("format", &self.format)
-            .field("size", &(self.width, self.height))
-            .field("delivered", &self.tracker.delivered())
-            .field("dropped", &self.tracker.dropped())
-            .finish_non_exhaustive()
+        f.debug_struct("V4l2Camera").field("path", &self.path).field("frames", &self.frames).finish_non_exhaustive()
     }
 }
 
@@ -231,24 +246,13 @@ impl V4l2Camera {
                 return Err(io_error(e));
             }
         };
-        Ok(V4l2Camera {
-            stream,
-            device,
-            path,
-            format,
-            width: got.width,
-            height: got.height,
-            stride: got.stride as usize,
-            lock,
-            tracker: SequenceTracker::new(),
-            exposure,
-            period,
-        })
+        let frames = FrameAssembler::new(NAME, format, (got.width, got.height), got.stride as usize, exposure, period);
+        Ok(V4l2Camera { stream: Mmap(stream), device, path, frames, lock })
     }
 
     /// Frames dropped by the driver so far (gaps in its sequence numbers).
     pub fn dropped_frames(&self) -> u64 {
-        self.tracker.dropped()
+        self.frames.dropped()
     }
 
     /// The device node streaming.
@@ -259,63 +263,19 @@ impl V4l2Camera {
 
 impl super::Camera for V4l2Camera {
     fn info(&self) -> super::CameraInfo {
-        super::CameraInfo { width: self.width, height: self.height }
+        let (width, height) = self.frames.size();
+        super::CameraInfo { width, height }
     }
 
     fn capture(&mut self, timeout: Duration) -> Result<super::Frame, DeviceError> {
-        let deadline = Instant::now() + timeout;
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                return Err(DeviceError::Timeout { device: NAME.into(), waiting_for: "a frame", timeout });
-            }
-            // Poll granularity is a millisecond; never zero (zero would return at once).
-            self.stream.set_timeout(left.max(Duration::from_millis(1)));
-            let (buf, meta) = match CaptureStream::next(&mut self.stream) {
-                Ok(x) => x,
-                Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {
-                    return Err(DeviceError::Timeout { device: NAME.into(), waiting_for: "a frame", timeout })
-                }
-                Err(e) => return Err(io_error(e)),
-            };
-            let step = self.tracker.observe(meta.sequence);
-            if meta.flags.contains(BufFlags::ERROR) {
-                tracing::warn!(sequence = meta.sequence, "frame marked corrupted by the driver; skipped");
-                continue;
-            }
-            let now = Instant::now();
-            let ts = Duration::from(meta.timestamp);
-            let monotonic = (meta.flags & BufFlags::TIMESTAMP_MASK) == BufFlags::TIMESTAMP_MONOTONIC;
-            let start = if monotonic {
-                let source = if (meta.flags & BufFlags::TSTAMP_SRC_MASK) == BufFlags::TSTAMP_SRC_SOE {
-                    TimestampSource::StartOfExposure
-                } else {
-                    TimestampSource::EndOfFrame
-                };
-                exposure_start(ts, source, self.exposure, self.period, monotonic_now(), now)
-            } else {
-                // No usable timestamp: assume the frame ended now (the safe side for freshness).
-                now.checked_sub(self.exposure + self.period).unwrap_or(now)
-            };
-            let used = (meta.bytesused as usize).min(buf.len());
-            let data = if used == 0 { buf } else { &buf[..used] };
-            let image = match to_rgb(self.format, self.width, self.height, self.stride, data) {
-                Ok(i) => i,
-                Err(e) => {
-                    // A truncated MJPEG transfer: the frame is lost, the stream goes on.
-                    tracing::warn!(sequence = meta.sequence, error = %e, "frame does not convert; skipped");
-                    continue;
-                }
-            };
-            return Ok(super::Frame { sequence: step.sequence, exposure_start: start, image });
-        }
+        self.frames.capture(&mut self.stream, timeout)
     }
 }
 
 impl Drop for V4l2Camera {
     fn drop(&mut self) {
         use v4l::io::traits::Stream as _;
-        if let Err(e) = self.stream.stop() {
+        if let Err(e) = self.stream.0.stop() {
             tracing::debug!(error = %e, "stopping the V4L2 stream");
         }
         let descriptions = match self.device.query_controls() {
@@ -327,7 +287,7 @@ impl Drop for V4l2Camera {
         };
         let mut backend = V4l2Controls { device: &self.device, descriptions };
         let failed = self.lock.restore(&mut backend);
-        tracing::debug!(failed, dropped = self.tracker.dropped(), "V4L2 camera closed");
+        tracing::debug!(failed, dropped = self.frames.dropped(), skipped = self.frames.skipped(), "V4L2 camera closed");
     }
 }
 
