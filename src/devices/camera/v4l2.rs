@@ -46,6 +46,17 @@ fn io_error(source: std::io::Error) -> DeviceError {
     }
 }
 
+/// Run a `v4l` query that unwraps what the device reports (non-UTF-8 names, control types it does
+/// not know) and so may panic; the panic becomes an `InvalidData` error.
+fn guarded<T>(what: &str, query: impl FnOnce() -> std::io::Result<T>) -> std::io::Result<T> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(query)).unwrap_or_else(|_| {
+        Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!("the device reports {what} the v4l crate cannot decode"),
+        ))
+    })
+}
+
 fn invalid(field: &'static str, problem: String) -> DeviceError {
     DeviceError::InvalidConfig { device: NAME.into(), field, problem }
 }
@@ -168,7 +179,7 @@ impl V4l2Camera {
         })?;
         let path = root.path(&node);
         let device = Device::with_path(&path).map_err(io_error)?;
-        let caps = device.query_caps().map_err(io_error)?;
+        let caps = guarded("capabilities", || device.query_caps()).map_err(io_error)?;
         if let CameraSelector::Bus(bus) = &selector {
             if caps.bus != *bus {
                 return Err(invalid("device", format!("{} reports bus `{}`, not `{bus}`", path.display(), caps.bus)));
@@ -227,7 +238,10 @@ impl V4l2Camera {
             }
         }
 
-        let mut backend = V4l2Controls { device: &device, descriptions: device.query_controls().map_err(io_error)? };
+        let mut backend = V4l2Controls {
+            device: &device,
+            descriptions: guarded("controls", || device.query_controls()).map_err(io_error)?,
+        };
         let lock =
             ControlLock::apply(&mut backend, &config.controls).map_err(|e| invalid("controls", e.to_string()))?;
         let exposure = match config.controls.exposure_us {
@@ -278,7 +292,7 @@ impl Drop for V4l2Camera {
         if let Err(e) = self.stream.0.stop() {
             tracing::debug!(error = %e, "stopping the V4L2 stream");
         }
-        let descriptions = match self.device.query_controls() {
+        let descriptions = match guarded("controls", || self.device.query_controls()) {
             Ok(d) => d,
             Err(e) => {
                 tracing::warn!(error = %e, "cannot read the controls to restore them");
@@ -295,7 +309,7 @@ impl Drop for V4l2Camera {
 /// and its bus info, for `scanrig devices`.
 pub fn describe_formats(node: &Path) -> std::io::Result<Vec<String>> {
     let device = Device::with_path(node)?;
-    let caps = device.query_caps()?;
+    let caps = guarded("capabilities", || device.query_caps())?;
     let mut out = vec![format!("bus_info {} driver {}", caps.bus, caps.driver)];
     for d in device.enum_formats()? {
         let mut sizes: Vec<String> = Vec::new();
@@ -316,6 +330,13 @@ pub fn describe_formats(node: &Path) -> std::io::Result<Vec<String>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_panicking_query_is_an_error() {
+        let e = guarded::<()>("controls", || panic!("unknown control type")).expect_err("caught");
+        assert_eq!(e.kind(), std::io::ErrorKind::InvalidData);
+        assert_eq!(guarded("x", || Ok(3)).expect("passes through"), 3);
+    }
 
     #[test]
     fn control_names_match_v4l2_ctl_spelling() {
