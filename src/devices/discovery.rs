@@ -10,7 +10,8 @@ use super::sysfs::{FramebufferNode, SerialNode, SysRoot, VideoNode};
 pub struct CameraEntry {
     /// The node and its identities.
     pub node: VideoNode,
-    /// Formats and sizes, e.g. `MJPG 1920x1080 1280x720`, when the `v4l` feature could open it.
+    /// What the driver says, one line each (`bus_info ... driver ...`, `format MJPG 1920x1080
+    /// 1280x720`), when the `v4l` feature could open it.
     pub formats: Vec<String>,
     /// Why the formats are unknown, when they are.
     pub formats_note: Option<String>,
@@ -129,7 +130,7 @@ pub fn render(listing: &Listing) -> String {
             let _ = writeln!(out, "    by-path {}", l.display());
         }
         for f in &c.formats {
-            let _ = writeln!(out, "    format {f}");
+            let _ = writeln!(out, "    {f}");
         }
         if let Some(note) = &c.formats_note {
             let _ = writeln!(out, "    ({note})");

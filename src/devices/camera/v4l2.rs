@@ -305,8 +305,8 @@ impl Drop for V4l2Camera {
     }
 }
 
-/// The formats and frame sizes a V4L2 node offers, one line per format (`MJPG 1920x1080 1280x720`),
-/// and its bus info, for `scanrig devices`.
+/// What a V4L2 node says about itself for `scanrig devices`: a `bus_info ... driver ...` line, then
+/// one line per format with its frame sizes (`format MJPG 1920x1080 1280x720`).
 pub fn describe_formats(node: &Path) -> std::io::Result<Vec<String>> {
     let device = Device::with_path(node)?;
     let caps = guarded("capabilities", || device.query_caps())?;
@@ -322,7 +322,7 @@ pub fn describe_formats(node: &Path) -> std::io::Result<Vec<String>> {
             }
         }
         let known = if PixelFormat::from_fourcc(d.fourcc.repr).is_some() { "" } else { " (not supported by scanrig)" };
-        out.push(format!("{} {}{known}", d.fourcc, sizes.join(" ")));
+        out.push(format!("format {} {}{known}", d.fourcc, sizes.join(" ")));
     }
     Ok(out)
 }
