@@ -5,6 +5,9 @@
 //!   intrinsics, extrinsics, then Levenberg-Marquardt refinement of the intrinsics, radial
 //!   distortion (`k1`, `k2`, the model of [`crate::geometry::Intrinsics`]) and every board pose;
 //!   and single-view pose estimation with known intrinsics ([`estimate_pose`]).
+//! - [`turntable`]: the turntable axis, and so the camera's pose in the rig frame, from board poses
+//!   at several table angles.
+//! - [`capture`]: board captures by a simulated rig (the rig file's camera) for the workflow.
 //!
 //! # Frames and units
 //! - **Board frame**: origin at inner corner `(0, 0)`, `+x` along the board's columns (index `i`),
@@ -15,11 +18,14 @@
 //! - Image points are continuous pixel coordinates with the origin at the top-left corner of the
 //!   image (pixel `(u, v)` covers `[u, u+1) × [v, v+1)`), as everywhere in [`crate::geometry`].
 
+pub mod capture;
 pub mod detect;
 mod lm;
+pub mod turntable;
 pub mod zhang;
 
 pub use detect::{detect_chessboard, ChessboardDetection, DetectError, DetectOptions};
+pub use turntable::{calibrate_turntable, TurntableCalibration, TurntableOptions, TurntableView};
 pub use zhang::{
     calibrate_camera, estimate_pose, homography, CalibrationOptions, CameraCalibrationResult, PlanarView, PoseEstimate,
 };

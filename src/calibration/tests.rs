@@ -190,3 +190,74 @@ fn degenerate_inputs_are_refused_with_a_reason() {
     let short = PlanarView { object: board.object_points()[..3].to_vec(), image: flat[0].image[..3].to_vec() };
     assert!(matches!(estimate_pose(&t, &short), Err(CalibrationError::TooFewPoints { got: 3, .. })));
 }
+
+fn turntable_rig() -> capture::SimBoardRig {
+    let camera = CameraModel {
+        width: 640,
+        height: 480,
+        intrinsics: Intrinsics { fx: 700.0, fy: 700.0, cx: 318.0, cy: 243.0, skew: 0.0, k1: -0.08, k2: 0.02 },
+        // The camera in the rig's x = 0 plane at negative y: the yaw convention of `turntable`.
+        pose: Pose::look_at(Vector3::new(0.0, -0.40, 0.33), Vector3::new(0.0, 0.0, 0.01), Vector3::z()),
+    };
+    let target = ChessboardTarget { cols: 9, rows: 6, square_m: 0.02, border_m: 0.015, dark: 0.08, light: 0.9 };
+    capture::SimBoardRig { camera, noise_sigma: 1.0, seed: 5, target, steps_per_turn: 3200 }
+}
+
+#[test]
+fn turntable_axis_and_camera_pose_are_recovered() {
+    let rig = turntable_rig();
+    let t = rig.target;
+    let board = BoardSpec::new(t.cols, t.rows, t.square_m).expect("board");
+    let height = 0.002;
+    let on_table = rig.lying_board_pose([0.012, -0.008], height);
+    let views: Vec<TurntableView> = (0..10)
+        .map(|k| {
+            let angle = rig.reachable_angle(k as f64 * 36.0);
+            let img = detect::to_gray(&rig.render_on_table(&on_table, angle, k));
+            let det = detect_chessboard(&img, &board, &DetectOptions::default())
+                .unwrap_or_else(|e| panic!("angle {angle}: {e}"));
+            TurntableView { angle_deg: angle, view: PlanarView { object: board.object_points(), image: det.corners } }
+        })
+        .collect();
+    let cal = calibrate_turntable(&rig.camera.intrinsics, &views, &TurntableOptions { board_origin_height_m: height })
+        .expect("axis");
+    let truth_axis = rig.camera.pose.rotation * Vector3::z();
+    let axis_err = cal.axis_camera.angle(&truth_axis).to_degrees();
+    let origin_err = (cal.origin_camera_m - rig.camera.pose.translation).norm();
+    let rot_err = Rotation3::from_matrix_unchecked(cal.camera_pose.rotation.transpose() * rig.camera.pose.rotation)
+        .angle()
+        .to_degrees();
+    println!(
+        "turntable: axis error {axis_err:.3} deg, origin error {:.2} mm, camera rotation error {rot_err:.3} deg, \
+         circle RMS {:.2} mm, max angle error {:.3} deg",
+        origin_err * 1e3,
+        cal.circle_rms_m * 1e3,
+        cal.max_angle_error_deg
+    );
+    assert!(axis_err < 0.5, "axis error {axis_err} deg");
+    assert!(origin_err < 0.003, "origin error {origin_err} m");
+    assert!(rot_err < 0.5, "camera rotation error {rot_err} deg");
+}
+
+#[test]
+fn camera_calibration_from_generated_rig_views() {
+    let rig = turntable_rig();
+    let t = rig.target;
+    let board = BoardSpec::new(t.cols, t.rows, t.square_m).expect("board");
+    let views: Vec<PlanarView> = rig
+        .camera_view_poses(12)
+        .iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let img = detect::to_gray(&rig.render_fixed(p, k as u64));
+            let det =
+                detect_chessboard(&img, &board, &DetectOptions::default()).unwrap_or_else(|e| panic!("view {k}: {e}"));
+            PlanarView { object: board.object_points(), image: det.corners }
+        })
+        .collect();
+    let cal = calibrate_camera(&views, &CalibrationOptions::default()).expect("calibrates");
+    let (e, tr) = (cal.intrinsics, rig.camera.intrinsics);
+    for (name, got, want) in [("fx", e.fx, tr.fx), ("fy", e.fy, tr.fy), ("cx", e.cx, tr.cx), ("cy", e.cy, tr.cy)] {
+        assert!(((got - want) / want).abs() < 0.005, "{name}: {got} vs {want}");
+    }
+}
