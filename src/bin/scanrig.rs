@@ -91,6 +91,13 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Calibrate the camera, the turntable axis or the lights into a calibration file that a rig
+    /// file can point to (`[rig] calibration = "calib.toml"`).
+    Calibrate {
+        /// What to calibrate.
+        #[command(subcommand)]
+        what: scanrig::calibration::cli::CalibrateCommand,
+    },
     /// Check a rig file and report every problem in it.
     Validate {
         /// The rig file (TOML).
@@ -242,6 +249,7 @@ fn decode_capture(
 
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Calibrate { what } => Ok(scanrig::calibration::cli::run(what)?),
         Command::Validate { rig } => {
             scanrig::config::load(&rig)?;
             println!("{}: ok", rig.display());

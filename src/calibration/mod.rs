@@ -19,7 +19,9 @@
 //!   image (pixel `(u, v)` covers `[u, u+1) × [v, v+1)`), as everywhere in [`crate::geometry`].
 
 pub mod capture;
+pub mod cli;
 pub mod detect;
+pub mod file;
 mod lm;
 pub mod turntable;
 pub mod zhang;

@@ -46,6 +46,11 @@ pub struct RigSection {
     /// Free text.
     #[serde(default)]
     pub description: String,
+    /// Calibration file written by `scanrig calibrate`, relative to the rig file. When set, the
+    /// camera's intrinsics (`[camera]`), its pose in the rig frame (`[turntable]`) and calibrated
+    /// light positions (`[[lights]]`) come from it, replacing those of this file.
+    #[serde(default)]
+    pub calibration: Option<std::path::PathBuf>,
 }
 
 /// `[turntable]`, tagged by `kind`.
