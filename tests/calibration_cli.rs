@@ -36,7 +36,7 @@ fn calibrate_camera_turntable_and_lights_through_the_cli() {
         "--rig",
         r,
         "--views",
-        "9",
+        "12",
         "--board",
         "9x6",
         "--square-mm",
@@ -83,7 +83,7 @@ fn calibrate_camera_turntable_and_lights_through_the_cli() {
     assert!(ok, "{text}");
     assert!(text.contains("blank.png: rejected: no chessboard found"), "{text}");
     assert!(text.contains("cut.png: rejected: partial board"), "{text}");
-    assert!(text.contains("over 9 of 11 images"), "{text}");
+    assert!(text.contains("over 12 of 14 images"), "{text}");
 
     // Turntable, with the intrinsics just calibrated.
     let (ok, text) = scanrig(&[
