@@ -111,6 +111,50 @@ fn calibrate_camera_turntable_and_lights_through_the_cli() {
     let centre_err = (tt.camera_pose().centre() - truth.centre()).norm();
     assert!(centre_err < 0.003, "camera centre error {centre_err} m\n{text}");
 
+    // The same turntable views saved and read back from disk (angles from the names).
+    let table = dir.path().join("table");
+    let tv = table.to_str().expect("utf-8");
+    let c3 = dir.path().join("table.toml");
+    let (ok, text) = scanrig(&[
+        "calibrate",
+        "turntable",
+        "--rig",
+        r,
+        "--views",
+        "6",
+        "--board",
+        "9x6",
+        "--square-mm",
+        "20",
+        "--out",
+        c3.to_str().expect("utf-8"),
+        "--intrinsics",
+        c,
+        "--save-images",
+        tv,
+    ]);
+    assert!(ok, "{text}");
+    std::fs::copy(table.join("angle_0.png"), table.join("no-angle.png")).expect("copy");
+    let (ok, text) = scanrig(&[
+        "calibrate",
+        "turntable",
+        "--images",
+        tv,
+        "--board",
+        "9x6",
+        "--square-mm",
+        "20",
+        "--out",
+        c3.to_str().expect("utf-8"),
+        "--intrinsics",
+        c,
+    ]);
+    assert!(ok, "{text}");
+    assert!(text.contains("no-angle.png: rejected: no table angle in the name"), "{text}");
+    assert!(text.contains("angle_180.png: re-projection RMS"), "{text}");
+    let from_disk = CalibrationFile::load(&c3).expect("written").turntable.expect("[turntable]");
+    assert!(Vector3::from(from_disk.axis_camera).angle(&axis_truth).to_degrees() < 0.5, "{text}");
+
     // Lights, from a start 7 cm off.
     let (ok, text) =
         scanrig(&["calibrate", "lights", "--rig", r, "--views", "4", "--start-offset-mm", "40,-30,50", "--out", c]);

@@ -37,7 +37,7 @@ impl SimBoardRig {
         let i = &self.camera.intrinsics;
         let board_w = (t.cols + 1) as f64 * t.square_m;
         let dist = i.fx * board_w / (0.45 * self.camera.width as f64);
-        let mid = Vector3::new((t.cols - 1) as f64 * t.square_m / 2.0, (t.rows - 1) as f64 * t.square_m / 2.0, 0.0);
+        let mid = board_middle(t);
         let cam_to_rig = self.camera.pose.rotation.transpose();
         (0..n)
             .map(|k| {
@@ -67,7 +67,7 @@ impl SimBoardRig {
     /// axis, its origin `height_m` above the table top.
     pub fn lying_board_pose(&self, offset_m: [f64; 2], height_m: f64) -> Pose {
         let t = &self.target;
-        let mid = Vector3::new((t.cols - 1) as f64 * t.square_m / 2.0, (t.rows - 1) as f64 * t.square_m / 2.0, 0.0);
+        let mid = board_middle(t);
         // Board x along object x, board y along -y, board z (into the board) down: the face is up.
         let r = Matrix3::new(1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0);
         Pose { rotation: r, translation: Vector3::new(offset_m[0], offset_m[1], height_m) - r * mid }
@@ -102,4 +102,13 @@ impl SimBoardRig {
             FrameNoise { sigma: self.noise_sigma, seed: self.seed, sequence },
         )
     }
+}
+
+/// The middle of the inner-corner grid, board frame, metres.
+fn board_middle(t: &ChessboardTarget) -> Vector3<f64> {
+    Vector3::new(
+        t.cols.saturating_sub(1) as f64 * t.square_m / 2.0,
+        t.rows.saturating_sub(1) as f64 * t.square_m / 2.0,
+        0.0,
+    )
 }

@@ -58,6 +58,14 @@ pub struct ChessboardDetection {
 /// Why an image was rejected.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum DetectError {
+    /// The board asked for has fewer than 3 inner corners along a side.
+    #[error("a chessboard needs at least 3x3 inner corners, got {cols}x{rows}")]
+    BoardTooSmall {
+        /// Inner corners along x.
+        cols: usize,
+        /// Inner corners along y.
+        rows: usize,
+    },
     /// The image is smaller than the detector's windows.
     #[error("image is {width}x{height} pixels, too small to search")]
     ImageTooSmall {
@@ -412,6 +420,9 @@ pub fn detect_chessboard(
     board: &BoardSpec,
     opts: &DetectOptions,
 ) -> Result<ChessboardDetection, DetectError> {
+    if board.cols < 3 || board.rows < 3 {
+        return Err(DetectError::BoardTooSmall { cols: board.cols, rows: board.rows });
+    }
     let (width, height) = image.dimensions();
     let min_side = 4 * (opts.ring_radius_px.ceil() as u32 + 4);
     if width < min_side || height < min_side {

@@ -261,3 +261,25 @@ fn camera_calibration_from_generated_rig_views() {
         assert!(((got - want) / want).abs() < 0.005, "{name}: {got} vs {want}");
     }
 }
+
+#[test]
+fn board_turned_a_quarter_keeps_its_corner_order() {
+    // Rows and columns swap in the image; the colouring (9 + 6 odd) still fixes the origin.
+    let board = spec();
+    for az in [90.0, 180.0, -90.0] {
+        let pose = board_pose(&target(), 10.0, -10.0, az, Vector3::new(0.0, 0.0, 0.6));
+        let det = detect_chessboard(&render(&pose, 4), &board, &DetectOptions::default()).expect("board found");
+        let truth = project_all(&truth_intrinsics(), &pose, &board.object_points());
+        let worst = det.corners.iter().zip(&truth).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+        assert!(worst < 0.5, "turned {az} deg: worst corner {worst} px");
+    }
+}
+
+#[test]
+fn blurred_capture_is_rejected() {
+    let pose = calibration_poses(&target())[0];
+    let sharp = render(&pose, 5);
+    let blurred = image::imageops::blur(&sharp, 8.0);
+    let err = detect_chessboard(&blurred, &spec(), &DetectOptions::default()).expect_err("too blurred");
+    assert!(matches!(err, DetectError::NoBoard { .. } | DetectError::PartialBoard { .. }), "{err}");
+}
