@@ -26,7 +26,8 @@ use nalgebra::{Matrix2, Point2, Vector2};
 
 use super::BoardSpec;
 
-/// Tunables of [`detect_chessboard`].
+/// Tunables of [`detect_chessboard`]. The defaults suit squares from about 12 pixels across up
+/// (the four-sector ring must fit inside the squares around a corner).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DetectOptions {
     /// Gaussian smoothing before the saddle response, pixels (standard deviation).

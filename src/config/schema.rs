@@ -48,7 +48,9 @@ pub struct RigSection {
     pub description: String,
     /// Calibration file written by `scanrig calibrate`, relative to the rig file. When set, the
     /// camera's intrinsics (`[camera]`), its pose in the rig frame (`[turntable]`) and calibrated
-    /// light positions (`[[lights]]`) come from it, replacing those of this file.
+    /// light positions (`[[lights]]`) come from it, replacing those of this file. In a simulated rig
+    /// the simulated camera and lights are then placed by the calibration too (the rig file describes
+    /// one camera).
     #[serde(default)]
     pub calibration: Option<std::path::PathBuf>,
 }
