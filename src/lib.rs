@@ -12,6 +12,7 @@
 //! - [`scan`]: one whole scan, from rig file to files on disk.
 
 pub mod acquisition;
+pub mod calibration;
 pub mod config;
 pub mod dataset;
 pub mod devices;

@@ -99,6 +99,13 @@ enum Command {
         #[arg(long, hide = true)]
         root: Option<PathBuf>,
     },
+    /// Calibrate the camera, the turntable axis or the lights into a calibration file that a rig
+    /// file can point to (`[rig] calibration = "calib.toml"`).
+    Calibrate {
+        /// What to calibrate.
+        #[command(subcommand)]
+        what: scanrig::calibration::cli::CalibrateCommand,
+    },
     /// Check a rig file and report every problem in it.
     Validate {
         /// The rig file (TOML).
@@ -256,6 +263,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             print!("{}", scanrig::devices::discovery::render(&scanrig::devices::discovery::discover(&root)));
             Ok(())
         }
+        Command::Calibrate { what } => Ok(scanrig::calibration::cli::run(what)?),
         Command::Validate { rig } => {
             scanrig::config::load(&rig)?;
             println!("{}: ok", rig.display());

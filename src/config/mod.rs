@@ -62,6 +62,17 @@ pub enum ConfigError {
         /// Every problem found.
         problems: Vec<Problem>,
     },
+    /// The calibration file named by `[rig] calibration` could not be read or does not fit the rig.
+    #[error("{path}:{line}: `rig.calibration`: cannot use the calibration file")]
+    Calibration {
+        /// The rig file.
+        path: PathBuf,
+        /// 1-based line of the `calibration` key.
+        line: usize,
+        /// What is wrong with the calibration file.
+        #[source]
+        source: crate::calibration::file::CalibrationFileError,
+    },
 }
 
 /// Read, parse and validate a rig file.
@@ -70,9 +81,10 @@ pub fn load(path: &Path) -> Result<RigConfig, ConfigError> {
     parse(&text, path)
 }
 
-/// Parse and validate rig-file text; `path` is only used in messages.
+/// Parse and validate rig-file text; `path` is used in messages and to find the calibration file of
+/// `[rig] calibration` (relative to the rig file's directory), which is then applied.
 pub fn parse(text: &str, path: &Path) -> Result<RigConfig, ConfigError> {
-    let config: RigConfig = toml::from_str(text).map_err(|e| {
+    let mut config: RigConfig = toml::from_str(text).map_err(|e| {
         let (line, column) = e.span().map(|s| line_col(text, s.start)).unwrap_or((1, 1));
         ConfigError::Parse { path: path.to_owned(), line, column, message: e.message().trim().to_owned() }
     })?;
@@ -80,6 +92,14 @@ pub fn parse(text: &str, path: &Path) -> Result<RigConfig, ConfigError> {
     if !problems.is_empty() {
         locate(text, &mut problems);
         return Err(ConfigError::Invalid { path: path.to_owned(), problems });
+    }
+    if let Some(rel) = config.rig.calibration.clone() {
+        let file = path.parent().map_or(rel.clone(), |d| d.join(&rel));
+        crate::calibration::file::apply_to_rig(&file, &mut config).map_err(|source| {
+            let mut p = [Problem { key: "rig.calibration".into(), line: None, message: String::new() }];
+            locate(text, &mut p);
+            ConfigError::Calibration { path: path.to_owned(), line: p[0].line.unwrap_or(1), source }
+        })?;
     }
     Ok(config)
 }

@@ -46,6 +46,13 @@ pub struct RigSection {
     /// Free text.
     #[serde(default)]
     pub description: String,
+    /// Calibration file written by `scanrig calibrate`, relative to the rig file. When set, the
+    /// camera's intrinsics (`[camera]`), its pose in the rig frame (`[turntable]`) and calibrated
+    /// light positions (`[[lights]]`) come from it, replacing those of this file. In a simulated rig
+    /// the simulated camera and lights are then placed by the calibration too (the rig file describes
+    /// one camera).
+    #[serde(default)]
+    pub calibration: Option<std::path::PathBuf>,
 }
 
 /// `[turntable]`, tagged by `kind`.
@@ -318,6 +325,22 @@ impl CameraConfig {
         match self {
             CameraConfig::Sim(c) => c.calibration.model(c.width, c.height),
             CameraConfig::V4l2(c) | CameraConfig::Uvc(c) => c.calibration.model(c.width, c.height),
+        }
+    }
+
+    /// Image size, pixels (width, height).
+    pub fn size(&self) -> (u32, u32) {
+        match self {
+            CameraConfig::Sim(c) => (c.width, c.height),
+            CameraConfig::V4l2(c) | CameraConfig::Uvc(c) => (c.width, c.height),
+        }
+    }
+
+    /// The calibration (intrinsics and rig-frame pose), for a calibration file to overwrite.
+    pub fn calibration_mut(&mut self) -> &mut CameraCalibration {
+        match self {
+            CameraConfig::Sim(c) => &mut c.calibration,
+            CameraConfig::V4l2(c) | CameraConfig::Uvc(c) => &mut c.calibration,
         }
     }
 }

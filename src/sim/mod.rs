@@ -5,6 +5,7 @@
 //! projector pattern) and render it (camera, depth camera). The scene is in the object frame; the
 //! devices are posed in the rig frame (see [`crate::geometry`]).
 
+pub mod chessboard;
 pub mod render;
 pub mod rng;
 pub mod scene;
