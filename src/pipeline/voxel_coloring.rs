@@ -8,9 +8,12 @@
 //! plane sweeps, along +x, -x, +y, -y, +z and -z. A sweep visits the layers of voxels perpendicular
 //! to its axis in order; a layer is judged only against the cameras *in front of* it (camera centre
 //! strictly before the layer's near face along the sweep), for which every occluder of a voxel of
-//! the layer lies in an earlier layer. Each such camera keeps an item buffer for the sweep that
-//! starts empty and grows layer by layer: when a layer is done, its kept surface voxels claim their
-//! footprints, so a voxel is judged on the footprint pixels no earlier kept voxel claimed. A voxel
+//! the layer lies in an earlier layer or in the layer itself. Each such camera keeps an item buffer
+//! for the sweep that starts empty and grows layer by layer: when a layer is done, its kept surface
+//! voxels enter it (per pixel the nearest camera depth). Each pass over a layer renders an item
+//! buffer of the layer's voxels over it (a ring of cameras at 20 degrees elevation looks along the
+//! layers of the z sweeps, so occlusion inside a layer matters), and a voxel is judged on the pixels
+//! of its sampling footprint (the central half-cube, see `SAMPLE_HALF_EDGE`) that it owns. A voxel
 //! whose carving exposes a neighbour queues it: in the same layer it is judged in a second pass,
 //! in a later layer when the sweep gets there, in an earlier one in the next sweep. After the six
 //! sweeps, every voxel judged in two or more sweeps is judged again on the union of its views from
@@ -339,7 +342,7 @@ impl Sweep {
             dense.bits[i] |= QUEUED;
             buckets[v[axis] as usize].push(v);
         }
-        buffers.par_iter_mut().for_each(|b| b.claimed.fill(false));
+        buffers.par_iter_mut().for_each(|b| b.claimed.fill(f32::INFINITY));
         let later = |a: usize, b: usize| if self.forward { a > b } else { a < b };
         let order: Vec<usize> = if self.forward { (0..n).collect() } else { (0..n).rev().collect() };
         let mut carved = 0u64;
@@ -414,11 +417,7 @@ impl Sweep {
             // The layer's kept voxels claim their footprints in the cameras in front of it.
             buffers.par_iter_mut().zip(cams).zip(&active).filter(|(_, &a)| a).for_each(|((b, cam), _)| {
                 for &v in &kept {
-                    if let Some(fp) = cam.footprint(v) {
-                        for y in fp.y0..fp.y1 {
-                            b.claimed[y * cam.width + fp.x0..y * cam.width + fp.x1].fill(true);
-                        }
-                    }
+                    b.claim(cam, v);
                 }
             });
         }
@@ -441,10 +440,12 @@ fn merge(entry: &mut (u8, Vec<(u32, ViewSample)>), sweep: u8, samples: Vec<(u32,
     }
 }
 
-/// One camera's visibility state in a sweep: the pixels kept voxels of earlier layers claimed, and an
-/// item buffer of the current layer's voxels (valid where `stamp` is the current pass's).
+/// One camera's visibility state in a sweep: per pixel, the nearest camera depth (metres) of the kept
+/// voxels of earlier layers whose footprints cover it (an item buffer grown layer by layer; infinity
+/// where none does), and an item buffer of the current layer's voxels (valid where `stamp` is the
+/// current pass's).
 struct SweepBuffer {
-    claimed: Vec<bool>,
+    claimed: Vec<f32>,
     stamp: Vec<u32>,
     depth: Vec<f32>,
     id: Vec<u32>,
@@ -454,11 +455,11 @@ struct SweepBuffer {
 impl SweepBuffer {
     fn new(cam: &VoxelCamera) -> SweepBuffer {
         let n = cam.width * cam.height;
-        SweepBuffer { claimed: vec![false; n], stamp: vec![0; n], depth: vec![0.0; n], id: vec![0; n], pass: 0 }
+        SweepBuffer { claimed: vec![f32::INFINITY; n], stamp: vec![0; n], depth: vec![0.0; n], id: vec![0; n], pass: 0 }
     }
 
-    /// Render the item buffer of `voxels` (one layer) over the unclaimed pixels: each pixel names the
-    /// nearest voxel (camera depth of its centre) whose footprint covers it.
+    /// Render the item buffer of `voxels` (one layer) over the pixels earlier layers leave visible:
+    /// each pixel names the nearest voxel (camera depth of its centre) whose footprint covers it.
     fn render_layer(&mut self, cam: &VoxelCamera, voxels: &[[u32; 3]]) {
         self.pass = self.pass.wrapping_add(1);
         if self.pass == 0 {
@@ -469,7 +470,7 @@ impl SweepBuffer {
             let Some(fp) = cam.footprint(v) else { continue };
             for y in fp.y0..fp.y1 {
                 for p in y * cam.width + fp.x0..y * cam.width + fp.x1 {
-                    if !self.claimed[p] && (self.stamp[p] != self.pass || fp.depth < self.depth[p]) {
+                    if fp.depth < self.claimed[p] && (self.stamp[p] != self.pass || fp.depth < self.depth[p]) {
                         self.stamp[p] = self.pass;
                         self.depth[p] = fp.depth;
                         self.id[p] = idx as u32;
@@ -479,12 +480,32 @@ impl SweepBuffer {
         }
     }
 
-    /// True when pixel `p` is unclaimed and the current layer's item buffer names voxel `idx` there.
+    /// Voxel `v` (kept in its layer) joins the earlier layers' item buffer.
+    fn claim(&mut self, cam: &VoxelCamera, v: [u32; 3]) {
+        if let Some(fp) = cam.footprint(v) {
+            for y in fp.y0..fp.y1 {
+                for c in &mut self.claimed[y * cam.width + fp.x0..y * cam.width + fp.x1] {
+                    *c = c.min(fp.depth);
+                }
+            }
+        }
+    }
+
+    /// True when the current layer's item buffer names voxel `idx` in pixel `p` (so no earlier layer
+    /// covers it nearer).
     #[inline]
     fn owns(&self, p: usize, idx: u32) -> bool {
-        !self.claimed[p] && self.stamp[p] == self.pass && self.id[p] == idx
+        self.stamp[p] == self.pass && self.id[p] == idx
     }
 }
+
+/// Half-edge (voxel units) of the central cube whose footprint a sweep samples: the full voxel's
+/// footprint rectangle reaches into its neighbours, and a sweep hands the pixels it shares with
+/// neighbours of later layers to the voxel, which biases the sample towards them differently in each
+/// view (on the bench's textured sphere at 64^3 a full-voxel sample let the downward sweep tunnel
+/// through the whole sphere, containment 0.002; the central half-cube: 0.965 at 64^3, 0.999 at
+/// 128^3). Item buffers still use full footprints.
+const SAMPLE_HALF_EDGE: f32 = 0.25;
 
 /// Judge voxel `v` (number `idx` in its layer's item buffers) against the `active` views on the
 /// pixels it owns: (consistent, the samples with their view indices).
@@ -510,7 +531,7 @@ fn judge(
         if cos < params.min_cos {
             continue;
         }
-        let Some(fp) = cam.footprint(v) else { continue };
+        let Some(fp) = cam.footprint_of_cube(v, SAMPLE_HALF_EDGE) else { continue };
         let visible = |x: usize, y: usize| buf.owns(y * cam.width + x, idx);
         let (count, mean) = sample_view(cam, view, &fp, visible);
         if count > 0 {
@@ -786,6 +807,16 @@ mod tests {
         assert!(after.iou > before.iou + 0.02, "IoU {} -> {}", before.iou, after.iou);
         assert!(after.containment >= 0.98, "containment {}", after.containment);
         assert!(model.stats.carved > 0 && model.stats.iterations >= 2);
+        assert_eq!(model.stats.sweeps, 6 * model.stats.iterations, "six plane sweeps per iteration");
+        // The whole-surface baseline reaches a comparable result.
+        let base = carve_photo_surface(&hull, &views, &params).expect("carves");
+        let b = base.occupancy.iou_and_containment(&truth).expect("same grid");
+        assert!(
+            b.iou > before.iou + 0.02 && b.containment >= 0.98,
+            "baseline IoU {} containment {}",
+            b.iou,
+            b.containment
+        );
         // Seen surface voxels of the truth take their true colour.
         let (mut err, mut n) = (0f64, 0usize);
         for ((v, c), &seen) in model.surface.voxels.iter().zip(&model.surface.colours).zip(&model.surface.seen) {
@@ -802,6 +833,38 @@ mod tests {
         let e_hull = reprojection_error(&grid(), &hull_surface, &views);
         let e_model = reprojection_error(&grid(), &model.surface, &views);
         assert!(e_model < e_hull, "re-projection {e_model} vs hull {e_hull}");
+    }
+
+    #[test]
+    fn a_sweep_consults_only_the_cameras_in_front_of_its_layers() {
+        let (truth, hull) = scene();
+        // Every camera is above the volume's top (z = 0.06 m): the upward sweep has none in front of
+        // any layer and cannot carve; the downward sweep has all of them and carves into the pit.
+        let cams: Vec<CameraModel> = (0..12).map(|n| camera(n as f64 * 30.0, 55.0)).collect();
+        assert!(cams.iter().all(|c| c.centre().z > 0.06));
+        let images = render(&truth, &cams);
+        let views: Vec<PhotoView<'_>> =
+            cams.iter().zip(&images).map(|(c, i)| PhotoView { camera: *c, image: i, mask: None }).collect();
+        let params = PhotoParams { threshold: 10.0, min_cos: 0.0, ..PhotoParams::default() };
+        let g = grid();
+        let vcams: Vec<VoxelCamera> = cams.iter().map(|c| VoxelCamera::new(c, &g)).collect();
+        let run = |forward: bool| {
+            let mut dense = Dense::from(&hull);
+            let mut buffers: Vec<SweepBuffer> = vcams.iter().map(SweepBuffer::new).collect();
+            let mut record = SweepRecord::new();
+            let mut stats = PhotoStats::default();
+            let sweep = Sweep { axis: 2, forward, id: 0 };
+            let carved = sweep.run(&mut dense, &g, &vcams, &views, &params, &mut buffers, &mut record, &mut stats);
+            // Each surface voxel is visited once, plus the ones carving exposed.
+            assert!(stats.visits >= hull.boundary_voxels().len() as u64);
+            assert!(stats.visits <= hull.boundary_voxels().len() as u64 + carved * 6);
+            (carved, record.len())
+        };
+        let (up, up_judged) = run(true);
+        assert_eq!((up, up_judged), (0, 0), "no camera is below any layer");
+        let (down, down_judged) = run(false);
+        assert!(down > 100, "the downward sweep carves into the pit: {down}");
+        assert!(down_judged > 0);
     }
 
     #[test]
