@@ -17,13 +17,16 @@
 //! whose carving exposes a neighbour queues it: in the same layer it is judged in a second pass,
 //! in a later layer when the sweep gets there, in an earlier one in the next sweep. After the six
 //! sweeps, every voxel judged in two or more sweeps is judged again on the union of its views from
-//! all sweeps (one sample per view, a view's samples only grow as carving proceeds, since a pixel
-//! a voxel owned stays owned). Iterations repeat until one carves nothing (or `max_iterations`).
+//! all sweeps (one sample per view, the one with more pixels: carving only uncovers pixels, so a
+//! sample stays a view of the voxel). Iterations repeat until one carves nothing (or
+//! `max_iterations`).
 //!
-//! Each sweep visits each surface voxel once (plus the voxels its own carving exposes), found from
-//! a list of the surface bucketed by layer, never by scanning empty or interior space; each visit
-//! projects into at most L views: O(surface × L) per sweep, and the number of iterations is bounded
-//! by the depth carved, O(L N³) at worst. The result only ever loses voxels of the start, so with
+//! Each sweep visits each surface voxel once (plus the voxels its own carving exposes): one
+//! parallel scan of a byte grid finds the surface, which the sweep then walks bucketed by layer, so
+//! empty and interior voxels are never projected; each visit projects into at most L views:
+//! O(N³ + surface × L) per sweep, and the number of iterations is bounded by the depth carved,
+//! O(L N³) at worst. The octree cells of the silhouette carver do not carry over (a cell's colour
+//! spread says nothing about its voxels'). The result only ever loses voxels of the start, so with
 //! the visual hull as the start it lies inside the hull.
 //!
 //! [`carve_photo_surface`] is the simpler variant it replaced, kept as the benchmark baseline: each
