@@ -1,8 +1,12 @@
 //! Photo-consistency: generalized space carving and voxel colouring at 128³ and 256³ on a synthetic
 //! textured sphere (36 views of 640x480 on a ring, a solid colour checker painted analytically),
-//! with silhouettes, starting from the sphere grown by three voxels so every run has layers to carve. Prints one summary
-//! line per case (time, iterations, visits, carved); criterion then measures voxel colouring at 128³
-//! (one space carving run takes seconds, so it is timed once). Set `PHOTO_BENCH_256=1` for the 256³ cases.
+//! with silhouettes, starting from the sphere grown by three voxels so every run has layers to carve.
+//! For each size, the multi-sweep space carving (`carve_photo`) and the baseline that re-renders
+//! whole-surface item buffers every iteration (`carve_photo_surface`) run once each on the same
+//! input in the same run, and one line per case prints time, iterations, visits, carved and the
+//! ratio baseline / sweeps; voxel colouring on a 7-view arc is timed too. Criterion then measures
+//! voxel colouring at 128³ (one space carving run takes seconds, so those are timed once).
+//! `PHOTO_BENCH_SIZES=128` (comma-separated) limits the sizes.
 //!
 //! `cargo bench --bench photo`.
 
@@ -12,6 +16,7 @@ use std::time::Instant;
 use criterion::{criterion_group, criterion_main, Criterion};
 use image::RgbImage;
 use scanrig::geometry::{Aabb, CameraModel, Intrinsics, Pose, Vector3, VoxelGrid};
+use scanrig::pipeline::voxel_coloring::carve_photo_surface;
 use scanrig::pipeline::{carve_photo, color_voxels, Mask, Occupancy, PhotoParams, PhotoView};
 
 const CENTRE: [f64; 3] = [0.0, 0.0, 0.04];
@@ -83,18 +88,34 @@ fn bench(c: &mut Criterion) {
         .collect();
     let arc: Vec<PhotoView<'_>> = all.iter().take(7).copied().collect();
     let params = PhotoParams { threshold: 20.0, min_cos: 0.3, ..PhotoParams::default() };
-    let sizes: &[u32] = if std::env::var_os("PHOTO_BENCH_256").is_some() { &[128, 256] } else { &[128] };
-    for &n in sizes {
+    let sizes: Vec<u32> = std::env::var("PHOTO_BENCH_SIZES")
+        .ok()
+        .map(|v| v.split(',').filter_map(|x| x.trim().parse().ok()).collect())
+        .unwrap_or_else(|| vec![128, 256]);
+    for &n in &sizes {
         let s = start(n);
         let t = Instant::now();
         let m = carve_photo(&s, &all, &params).expect("carve");
+        let sweeps = t.elapsed().as_secs_f64();
         println!(
-            "space-carving-photo {n}^3, 36 views: {:.2} s, {} iterations, {} visits, {} carved of {}",
-            t.elapsed().as_secs_f64(),
+            "space-carving-photo (six-direction sweeps) {n}^3, 36 views: {sweeps:.2} s, {} iterations ({} sweeps), \
+             {} visits, {} carved of {}",
             m.stats.iterations,
+            m.stats.sweeps,
             m.stats.visits,
             m.stats.carved,
             s.count()
+        );
+        let t = Instant::now();
+        let b = carve_photo_surface(&s, &all, &params).expect("carve");
+        let base = t.elapsed().as_secs_f64();
+        println!(
+            "space-carving-photo baseline (whole-surface item buffers) {n}^3, 36 views: {base:.2} s, {} iterations, \
+             {} visits, {} carved; baseline / sweeps = {:.2}",
+            b.stats.iterations,
+            b.stats.visits,
+            b.stats.carved,
+            base / sweeps
         );
         let t = Instant::now();
         let m = color_voxels(&s, &arc, &params).expect("ordinal order");

@@ -20,7 +20,8 @@ fn dino_photo_carving_reprojects_better_than_the_hull() {
     let resolution = if cfg!(debug_assertions) { "64" } else { "128" };
     let output = Command::new(env!("CARGO_BIN_EXE_scanrig"))
         .args(["reconstruct", "--method", "space-carving-photo", "--resolution", resolution])
-        .args(["--photo", "threshold=40,min_cos=0.4", "--dataset"])
+        // The defaults of `[reconstruction.photo]` (threshold 22, min_cos 0.4), as on the simulated rigs.
+        .arg("--dataset")
         .arg(&dir)
         .arg("--views")
         .arg(dir.join("dinoSR_good_silhouette_images.txt"))

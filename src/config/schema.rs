@@ -748,13 +748,13 @@ pub struct PhotoConfig {
 }
 
 fn default_photo_threshold() -> f64 {
-    18.0
+    22.0
 }
 fn default_photo_min_views() -> usize {
     2
 }
 fn default_photo_min_cos() -> f64 {
-    0.2
+    0.4
 }
 fn default_photo_iterations() -> usize {
     500

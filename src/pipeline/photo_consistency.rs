@@ -65,9 +65,12 @@ pub struct PhotoParams {
     pub max_iterations: usize,
 }
 
+/// The defaults (threshold 22 levels, `min_cos` 0.4) carve both the simulated cup under near-ambient
+/// light and the Middlebury dino (lights fixed while the object turns) without tunnelling; see the
+/// README's method table for the figures.
 impl Default for PhotoParams {
     fn default() -> Self {
-        PhotoParams { threshold: 18.0, min_ncc: None, min_views: 2, min_cos: 0.2, max_iterations: 500 }
+        PhotoParams { threshold: 22.0, min_ncc: None, min_views: 2, min_cos: 0.4, max_iterations: 500 }
     }
 }
 
@@ -230,10 +233,16 @@ impl VoxelCamera {
     /// The footprint of voxel `v` (see the module docs); `None` when a corner is behind the camera or
     /// the footprint misses the image.
     pub(crate) fn footprint(&self, v: [u32; 3]) -> Option<Footprint> {
+        self.footprint_of_cube(v, 0.5)
+    }
+
+    /// The footprint of the cube of half-edge `half` (voxel units, 0.5 = the voxel) centred on voxel
+    /// `v`, as [`Self::footprint`].
+    pub(crate) fn footprint_of_cube(&self, v: [u32; 3], half: f32) -> Option<Footprint> {
         let (depth, uc, vc) = self.project(self.point(v, [0.0; 3]));
         let (mut u0, mut u1, mut v0, mut v1) = (uc, uc, vc, vc);
         for corner in 0..8 {
-            let f = [0, 1, 2].map(|a| if corner >> a & 1 == 1 { 0.5 } else { -0.5 });
+            let f = [0, 1, 2].map(|a| if corner >> a & 1 == 1 { half } else { -half });
             let (z, u, w) = self.project(self.point(v, f));
             if z.is_nan() || z <= 0.0 {
                 return None;
@@ -312,8 +321,9 @@ pub(crate) struct ViewSample {
     pub(crate) count: u32,
     /// Mean colour, 8-bit levels.
     pub(crate) mean: [f32; 3],
-    /// Cosine between the voxel's normal and the direction to the camera (1 without a normal).
-    pub(crate) cos: f32,
+    /// Colour of the pixel the voxel's centre projects into, when the voxel is visible there (and it
+    /// is inside the mask); only gathered for colouring.
+    pub(crate) centre: Option<[u8; 3]>,
 }
 
 /// Outward normal estimate of voxel `v`: the normalised sum of the offsets to its empty
@@ -379,6 +389,26 @@ pub(crate) fn sample_view(
     } else {
         (count, sum.map(|s| s as f32 / count as f32))
     }
+}
+
+/// The colour of the pixel voxel `v`'s centre projects into, if `visible(x, y)` holds there and the
+/// pixel is inside the mask.
+pub(crate) fn centre_sample(
+    cam: &VoxelCamera,
+    view: &PhotoView<'_>,
+    v: [u32; 3],
+    visible: impl Fn(usize, usize) -> bool,
+) -> Option<[u8; 3]> {
+    let (z, u, w) = cam.project(cam.point(v, [0.0; 3]));
+    if z.is_nan() || z <= 0.0 {
+        return None;
+    }
+    let (x, y) = cam.pixel(u, w)?;
+    if !visible(x, y) || view.mask.is_some_and(|m| !m.get(x as u32, y as u32)) {
+        return None;
+    }
+    let p = 3 * (y * cam.width + x);
+    view.image.as_raw().get(p..p + 3).map(|px| [px[0], px[1], px[2]])
 }
 
 /// Count-weighted standard deviation of per-view mean colours, RMS over channels, 8-bit levels.
@@ -466,17 +496,31 @@ pub(crate) fn is_consistent(samples: &[ViewSample], patterns: &[[f32; 24]], para
     }
 }
 
-/// The colour of a voxel from its per-view samples: the count-weighted mean over the views that face
-/// it best (cosine within 0.15 of the best one); [`UNSEEN_COLOUR`] without samples.
-pub(crate) fn best_colour(samples: &[ViewSample]) -> [u8; 3] {
-    let best = samples.iter().map(|s| s.cos).fold(f32::NEG_INFINITY, f32::max);
+/// The colour of a voxel from its per-view samples (the unoccluded views that face it, cosine >=
+/// `min_cos`): the mean of their centre pixels ([`ViewSample::centre`]) where any has one, else the
+/// count-weighted mean of their footprint means; [`UNSEEN_COLOUR`] without samples.
+///
+/// The centre pixel is sharper than the footprint (which spans up to twice the voxel and blurs texture
+/// edges). Averaging over every facing view rather than taking the most frontal one cancels much of
+/// the view-dependent shading: on a turntable the lights stay with the camera, so the most frontal
+/// view is also the most brightly lit (on the shipped cup rig, colouring from the views within 0.05
+/// of the best cosine gives a mean colour error of about 12/255, the mean over all facing views 7.9).
+pub(crate) fn surface_colour(samples: &[ViewSample]) -> [u8; 3] {
     let mut acc = [0f32; 3];
     let mut n = 0f32;
-    for s in samples.iter().filter(|s| s.cos >= best - 0.15) {
-        for (a, m) in acc.iter_mut().zip(&s.mean) {
-            *a += s.count as f32 * m;
+    for c in samples.iter().filter_map(|s| s.centre) {
+        for (a, x) in acc.iter_mut().zip(c) {
+            *a += x as f32;
         }
-        n += s.count as f32;
+        n += 1.0;
+    }
+    if n == 0.0 {
+        for s in samples {
+            for (a, m) in acc.iter_mut().zip(&s.mean) {
+                *a += s.count as f32 * m;
+            }
+            n += s.count as f32;
+        }
     }
     if n > 0.0 {
         acc.map(|x| (x / n).round().clamp(0.0, 255.0) as u8)
@@ -489,8 +533,8 @@ pub(crate) fn best_colour(samples: &[ViewSample]) -> [u8; 3] {
 mod tests {
     use super::*;
 
-    fn s(count: u32, mean: [f32; 3], cos: f32) -> ViewSample {
-        ViewSample { count, mean, cos }
+    fn s(count: u32, mean: [f32; 3], _cos: f32) -> ViewSample {
+        ViewSample { count, mean, centre: None }
     }
 
     #[test]
@@ -522,9 +566,13 @@ mod tests {
     }
 
     #[test]
-    fn best_colour_prefers_facing_views() {
-        let c = best_colour(&[s(3, [200.0, 10.0, 10.0], 0.95), s(3, [10.0, 10.0, 200.0], 0.3)]);
-        assert_eq!(c, [200, 10, 10]);
-        assert_eq!(best_colour(&[]), UNSEEN_COLOUR);
+    fn surface_colour_averages_centre_pixels_and_falls_back_to_footprints() {
+        let with_centre = |c: [u8; 3]| ViewSample { centre: Some(c), ..s(3, [0.0; 3], 0.9) };
+        // Centre pixels win over footprint means (which blur edges).
+        let c = surface_colour(&[with_centre([200, 10, 10]), with_centre([180, 30, 10]), s(9, [0.0; 3], 1.0)]);
+        assert_eq!(c, [190, 20, 10]);
+        // Without centre pixels, the count-weighted footprint means.
+        assert_eq!(surface_colour(&[s(3, [100.0; 3], 0.9), s(1, [20.0; 3], 0.5)]), [80, 80, 80]);
+        assert_eq!(surface_colour(&[]), UNSEEN_COLOUR);
     }
 }

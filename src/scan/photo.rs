@@ -196,6 +196,7 @@ pub fn reconstruct_photo(
         min_ncc: config.min_ncc,
         views: used.len(),
         iterations: model.stats.iterations,
+        sweeps: model.stats.sweeps,
         visits: model.stats.visits,
         carved: model.stats.carved,
         seconds: model.stats.seconds,

@@ -89,6 +89,8 @@ pub struct PhotoReport {
     pub views: usize,
     /// Iterations (space carving) or layers (voxel colouring).
     pub iterations: usize,
+    /// Plane sweeps (space carving: six per iteration; voxel colouring: 0).
+    pub sweeps: usize,
     /// Voxel visits.
     pub visits: u64,
     /// Voxels carved by photo-consistency (beyond the hull).
