@@ -21,6 +21,9 @@
 pub mod capture;
 pub mod detect;
 mod lm;
+pub mod opencv_xml;
+pub mod procam;
+pub mod procam_sim;
 pub mod turntable;
 pub mod zhang;
 
@@ -180,5 +183,7 @@ pub enum CalibrationError {
     },
 }
 
+#[cfg(test)]
+mod procam_tests;
 #[cfg(test)]
 pub(crate) mod tests;
