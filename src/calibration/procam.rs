@@ -139,11 +139,15 @@ pub struct LocalHomographyOptions {
     /// Decoded pixels farther than this from the fitted homography's prediction are dropped and the
     /// homography refitted, projector pixels (also at least 3 robust standard deviations).
     pub outlier_px: f64,
+    /// Projector pixels per Gray-code pixel (the "graycode step": patterns rendered at
+    /// `1/step` of the projector's resolution and shown enlarged). Decoded code `c` covers projector
+    /// pixels `[step·c, step·(c+1))`, so it stands for the projector coordinate `step·(c + 0.5)`.
+    pub graycode_step: u32,
 }
 
 impl Default for LocalHomographyOptions {
     fn default() -> Self {
-        LocalHomographyOptions { half_window_px: 20, min_valid: 60, outlier_px: 1.5 }
+        LocalHomographyOptions { half_window_px: 20, min_valid: 60, outlier_px: 1.5, graycode_step: 1 }
     }
 }
 
@@ -196,6 +200,7 @@ fn projector_corner(
         return None;
     }
     let (w, h) = (width as i64, height as i64);
+    let step = opts.graycode_step.max(1) as f64;
     let half = opts.half_window_px as i64;
     // The camera pixel containing the corner.
     let (px, py) = (corner.x.floor() as i64, corner.y.floor() as i64);
@@ -215,7 +220,7 @@ fn projector_corner(
             }
             // Camera coordinates relative to the corner keep the fit well conditioned.
             src.push(Point2::new(x as f64 + 0.5 - corner.x, y as f64 + 0.5 - corner.y));
-            dst.push(Point2::new(c as f64 + 0.5, r as f64 + 0.5));
+            dst.push(Point2::new(step * (c as f64 + 0.5), step * (r as f64 + 0.5)));
         }
     }
     let need = opts.min_valid.max(4);
@@ -297,13 +302,22 @@ pub struct ProcamOptions {
     pub projector: Option<Lens>,
     /// Options of the per-device Zhang calibrations.
     pub zhang: CalibrationOptions,
+    /// Hold projector <- camera at this transform (only the board poses are refined), to measure
+    /// how well a given calibration, e.g. a published one, explains the views.
+    pub fixed_stereo: Option<Pose>,
     /// Levenberg-Marquardt iterations of the joint stereo refinement.
     pub max_iterations: usize,
 }
 
 impl Default for ProcamOptions {
     fn default() -> Self {
-        ProcamOptions { camera: None, projector: None, zhang: CalibrationOptions::default(), max_iterations: 100 }
+        ProcamOptions {
+            camera: None,
+            projector: None,
+            zhang: CalibrationOptions::default(),
+            fixed_stereo: None,
+            max_iterations: 100,
+        }
     }
 }
 
@@ -447,8 +461,10 @@ pub fn calibrate_procam(views: &[ProcamView], opts: &ProcamOptions) -> Result<Pr
         rsum += s.rotation;
         tsum += s.translation;
     }
-    let r0 = nearest_rotation(&rsum);
-    let t0 = tsum / views.len() as f64;
+    let (r0, t0) = match opts.fixed_stereo {
+        Some(s) => (s.rotation, s.translation),
+        None => (nearest_rotation(&rsum), tsum / views.len() as f64),
+    };
 
     // Parameters: stereo rvec, t; then each view's board -> camera rvec, t.
     let scale = t0.norm().max(cam_poses.iter().map(|p| p.translation.norm()).fold(0.0, f64::max)).max(1e-6);
@@ -459,7 +475,14 @@ pub fn calibrate_procam(views: &[ProcamView], opts: &ProcamOptions) -> Result<Pr
         p0.extend_from_slice(&[r.x, r.y, r.z, c.translation.x, c.translation.y, c.translation.z]);
     }
     let ts = 1e-7 * scale;
-    let steps: Vec<f64> = (0..p0.len()).map(|k| if k % 6 < 3 { 1e-7 } else { ts }).collect();
+    let fixed = opts.fixed_stereo.is_some();
+    let steps: Vec<f64> = (0..p0.len())
+        .map(|k| match (k < 6 && fixed, k % 6 < 3) {
+            (true, _) => 0.0,
+            (false, true) => 1e-7,
+            (false, false) => ts,
+        })
+        .collect();
     let residuals = |p: &DVector<f64>, out: &mut Vec<f64>| -> (usize, usize) {
         out.clear();
         let stereo = pose_from(&p.as_slice()[0..6]);
