@@ -23,6 +23,7 @@ pub mod detect;
 mod lm;
 pub mod opencv_xml;
 pub mod procam;
+pub mod procam_file;
 pub mod procam_sim;
 pub mod turntable;
 pub mod zhang;

@@ -529,10 +529,10 @@ pub fn calibrate_procam(views: &[ProcamView], opts: &ProcamOptions) -> Result<Pr
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ProcamViewError {
     /// The images do not fit the pattern sequence.
-    #[error("decoding the Gray code: {0}")]
+    #[error("decoding the Gray code")]
     Decode(#[from] crate::pipeline::structured_light::DecodeError),
     /// The chessboard was not found in the all-white image.
-    #[error("chessboard in the all-white image (sequence image {white_index}): {source}")]
+    #[error("no usable chessboard in the all-white image (sequence image {white_index})")]
     Detect {
         /// Index of the all-white image in the sequence.
         white_index: usize,
