@@ -271,19 +271,19 @@ mod tests {
     #[test]
     fn errors_name_the_field_and_line() {
         let missing = SAMPLE.replace("proj_dist", "proj_distortion");
-        let e = ReferenceCalibration::parse(&missing, Path::new("c.xml")).unwrap_err();
+        let e = ReferenceCalibration::parse(&missing, Path::new("c.xml")).expect_err("must be refused");
         assert!(e.to_string().contains("<proj_dist>"), "{e}");
         let short = SAMPLE.replace("<data>100 -600 -100</data>", "<data>100 -600</data>");
-        let e = ReferenceCalibration::parse(&short, Path::new("c.xml")).unwrap_err();
+        let e = ReferenceCalibration::parse(&short, Path::new("c.xml")).expect_err("must be refused");
         let msg = e.to_string();
         assert!(msg.contains("c.xml:23") && msg.contains("<translation>") && msg.contains("2 values"), "{msg}");
         let nan = SAMPLE.replace("1000. 0. 320.", "1000. 0. abc");
-        let e = ReferenceCalibration::parse(&nan, Path::new("c.xml")).unwrap_err();
+        let e = ReferenceCalibration::parse(&nan, Path::new("c.xml")).expect_err("must be refused");
         assert!(e.to_string().contains("\"abc\" is not a number"), "{e}");
         let not_rot = SAMPLE.replace("<data>1 0 0 0 1 0 0 0 1</data>", "<data>2 0 0 0 1 0 0 0 1</data>");
-        let e = ReferenceCalibration::parse(&not_rot, Path::new("c.xml")).unwrap_err();
+        let e = ReferenceCalibration::parse(&not_rot, Path::new("c.xml")).expect_err("must be refused");
         assert!(e.to_string().contains("not a rotation"), "{e}");
-        let io = ReferenceCalibration::load(Path::new("/nonexistent/c.xml")).unwrap_err();
+        let io = ReferenceCalibration::load(Path::new("/nonexistent/c.xml")).expect_err("must be refused");
         assert!(matches!(io, OpenCvXmlError::Io { .. }));
     }
 }
