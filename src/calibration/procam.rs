@@ -441,7 +441,11 @@ pub fn calibrate_procam(views: &[ProcamView], opts: &ProcamOptions) -> Result<Pr
                 if !lens.is_valid() {
                     return Err(CalibrationError::Degenerate { reason: "the given intrinsics are not finite" });
                 }
-                let poses = vs.iter().map(|v| estimate_pose_lens(&lens, v)).collect::<Result<Vec<_>, _>>()?;
+                let poses = vs
+                    .iter()
+                    .enumerate()
+                    .map(|(i, v)| estimate_pose_lens(&lens, v).map_err(|e| in_view(e, i)))
+                    .collect::<Result<Vec<_>, _>>()?;
                 Ok((lens, poses))
             }
             None => {
@@ -616,4 +620,17 @@ pub fn procam_view_from_frames(
         mean_fit_rms_px: found.iter().map(|c| c.rms_px).sum::<f64>() / n,
     };
     Ok((ProcamView::new(&board.object_points(), &det.corners, &pc), stats))
+}
+
+/// The error `e` of a single-view computation, renumbered to name view `i` of the input.
+fn in_view(e: CalibrationError, i: usize) -> CalibrationError {
+    use CalibrationError as E;
+    match e {
+        E::TooFewPoints { got, need, .. } => E::TooFewPoints { view: i, got, need },
+        E::MismatchedPoints { object, image, .. } => E::MismatchedPoints { view: i, object, image },
+        E::NotPlanar { index, z, .. } => E::NotPlanar { view: i, index, z },
+        E::NonFinite { index, .. } => E::NonFinite { view: i, index },
+        E::Collinear { .. } => E::Collinear { view: i },
+        other => other,
+    }
 }

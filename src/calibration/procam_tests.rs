@@ -188,3 +188,38 @@ fn lens_distortion_round_trips_and_matches_intrinsics() {
     let b = i.normalised_to_pixel(0.2, -0.1);
     assert!((a - b).norm() < 1e-12);
 }
+
+#[test]
+fn bad_views_are_refused_naming_the_view() {
+    let board = board();
+    let lens = Lens::from(camera().intrinsics);
+    let obj = board.object_points();
+    let pose = calibration_poses(&target())[0];
+    let cam: Vec<Point2<f64>> = obj
+        .iter()
+        .map(|p| {
+            let c = pose.apply(p);
+            camera().intrinsics.normalised_to_pixel(c.x / c.z, c.y / c.z)
+        })
+        .collect();
+    let proj: Vec<Option<ProjectorCorner>> =
+        cam.iter().map(|p| Some(ProjectorCorner { point: *p, inliers: 100, rms_px: 0.1 })).collect();
+    let good = ProcamView::new(&obj, &cam, &proj);
+    let opts = ProcamOptions { camera: Some(lens), projector: Some(lens), ..ProcamOptions::default() };
+    // Too few projector corners in view 1.
+    let few: Vec<Option<ProjectorCorner>> =
+        proj.iter().enumerate().map(|(i, p)| if i < 3 { *p } else { None }).collect();
+    let e = calibrate_procam(&[good.clone(), ProcamView::new(&obj, &cam, &few)], &opts).expect_err("refused");
+    assert!(matches!(e, super::CalibrationError::TooFewPoints { view: 1, got: 3, need: 4 }), "{e}");
+    // A non-finite camera corner in view 1, with fixed intrinsics.
+    let mut nan = good.clone();
+    nan.camera.image[5].x = f64::NAN;
+    let e = calibrate_procam(&[good.clone(), nan], &opts).expect_err("refused");
+    assert!(matches!(e, super::CalibrationError::NonFinite { view: 1, index: 5 }), "{e}");
+    // No views at all.
+    let e = calibrate_procam(&[], &opts).expect_err("refused");
+    assert!(matches!(e, super::CalibrationError::TooFewViews { got: 0, need: 1 }), "{e}");
+    // Non-finite given intrinsics.
+    let bad = ProcamOptions { camera: Some(Lens { fx: f64::NAN, ..lens }), ..opts };
+    assert!(calibrate_procam(std::slice::from_ref(&good), &bad).is_err());
+}
