@@ -76,9 +76,9 @@ pub enum ProcamFileError {
     /// The reference file could not be read.
     #[error("reference calibration")]
     Reference(#[from] OpenCvXmlError),
-    /// The camera calibration file could not be read.
+    /// A calibration file (`--camera-calib`, or one read back) could not be read or parsed.
     #[error("{}: {reason}", path.display())]
-    CameraFile {
+    ReadFile {
         /// The file.
         path: PathBuf,
         /// What is wrong.
@@ -141,7 +141,7 @@ fn read_camera_file(path: &Path) -> Result<Lens, ProcamFileError> {
     struct CameraOnly {
         camera: Lens,
     }
-    let bad = |reason: String| ProcamFileError::CameraFile { path: path.to_path_buf(), reason };
+    let bad = |reason: String| ProcamFileError::ReadFile { path: path.to_path_buf(), reason };
     let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
     // Other tables and keys (a whole procam file, say) are ignored; only `[camera]` is read.
     let lens: CameraOnly = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
@@ -228,7 +228,57 @@ pub fn write_procam_file(path: &Path, file: &ProcamFile) -> Result<(), ProcamFil
 
 /// Read a calibration file written by [`write_procam_file`].
 pub fn read_procam_file(path: &Path) -> Result<ProcamFile, ProcamFileError> {
-    let bad = |reason: String| ProcamFileError::CameraFile { path: path.to_path_buf(), reason };
+    let bad = |reason: String| ProcamFileError::ReadFile { path: path.to_path_buf(), reason };
     let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
     toml::from_str(&text).map_err(|e| bad(e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn camera_file_round_trips_and_errors_name_the_file() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let lens = Lens {
+            fx: 800.0,
+            fy: 790.0,
+            cx: 320.5,
+            cy: 240.5,
+            skew: 0.0,
+            k1: -0.1,
+            k2: 0.01,
+            p1: 0.0,
+            p2: 0.0,
+            k3: 0.0,
+        };
+        let file = ProcamFile {
+            camera: lens,
+            projector: Lens { fx: 400.0, ..lens },
+            projector_width: 320,
+            projector_height: 240,
+            graycode_step: 1,
+            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            translation: [0.1, 0.0, 0.0],
+            camera_rms_px: 0.1,
+            projector_rms_px: 0.2,
+            views: 3,
+        };
+        let path = dir.path().join("procam.toml");
+        write_procam_file(&path, &file).expect("write");
+        assert_eq!(read_procam_file(&path).expect("read"), file);
+        // A procam file serves as --camera-calib: only its [camera] table is read.
+        assert_eq!(read_camera_file(&path).expect("camera"), lens);
+
+        let bad = dir.path().join("bad.toml");
+        std::fs::write(&bad, "[camera]\nfx = 800.0\nfy = 790.0\ncx = 320.0\n").expect("write");
+        let e = read_camera_file(&bad).expect_err("cy missing");
+        let msg = e.to_string();
+        assert!(msg.contains("bad.toml") && msg.contains("cy"), "{msg}");
+        std::fs::write(&bad, "[camera]\nfx = -800.0\nfy = 790.0\ncx = 320.0\ncy = 240.0\n").expect("write");
+        assert!(read_camera_file(&bad).expect_err("negative fx").to_string().contains("positive"));
+        std::fs::write(&bad, "[lens]\nfx = 1.0\n").expect("write");
+        assert!(read_camera_file(&bad).expect_err("no camera").to_string().contains("camera"));
+        assert!(read_camera_file(&dir.path().join("missing.toml")).is_err());
+    }
 }
