@@ -1,8 +1,9 @@
 //! Simulated projector-camera captures of a chessboard: the printed board of
 //! [`crate::sim::chessboard`] seen by a simulated camera and lit by a simulated projector showing a
-//! Gray-code sequence, with the projector term of the scan renderer ([`crate::sim::render`]):
+//! Gray-code sequence, with the light model of the scan renderer ([`crate::sim::render`]):
 //! a board point of reflectance `a` lit by projector pixel value `P` (0..255) renders at
-//! `a · (ambient + intensity · P/255)` of full scale. Each camera pixel averages `n x n` rays through
+//! `a · (ambient + intensity · P/255 · cosθ · (REFERENCE_DISTANCE_M / d)²)` of full scale, `θ` the
+//! angle between the board normal and the direction to the projector, `d` the distance to it. Each camera pixel averages `n x n` rays through
 //! its area, and each ray's board point takes the value of the projector pixel it falls in (a real
 //! projector shows each pixel as a uniform square), so stripe and square edges are anti-aliased as a
 //! sensor integrates light. Frames are 8-bit grey with seeded Gaussian noise.
@@ -16,6 +17,7 @@ use rayon::prelude::*;
 use crate::geometry::{CameraModel, Pose};
 use crate::pipeline::structured_light::{GrayCodePatterns, PatternError};
 use crate::sim::chessboard::ChessboardTarget;
+use crate::sim::render::REFERENCE_DISTANCE_M;
 use crate::sim::rng::gaussian3;
 
 /// A simulated camera, projector and printed board.
@@ -44,7 +46,10 @@ pub struct SimProcam {
 /// What one camera ray sees: the board's reflectance and the projector pixel lighting that point.
 #[derive(Clone, Copy)]
 struct RaySample {
+    /// Reflectance; negative where the ray misses the board.
     albedo: f32,
+    /// `cosθ · (REFERENCE_DISTANCE_M / d)²` towards the projector.
+    falloff: f32,
     /// Index into the projector image, or `u32::MAX` where the projector does not light the point.
     projector_pixel: u32,
 }
@@ -83,7 +88,7 @@ impl SimProcam {
                             self.background as f32
                         } else {
                             let lit = pattern.get(s.projector_pixel as usize).map_or(0.0, |&p| p as f32 / 255.0);
-                            s.albedo * (self.ambient as f32 + self.projector_intensity as f32 * lit)
+                            s.albedo * (self.ambient as f32 + self.projector_intensity as f32 * lit * s.falloff)
                         };
                     }
                     let noise = if self.noise_sigma > 0.0 {
@@ -112,7 +117,7 @@ impl SimProcam {
         let proj_b = rt * (self.projector.centre() - board_to_rig.translation);
         let same_side = proj_b.z * origin_b.z > 0.0;
         let (pw, ph) = (self.projector.width as f64, self.projector.height as f64);
-        let mut out = vec![RaySample { albedo: -1.0, projector_pixel: u32::MAX }; w * h * n * n];
+        let mut out = vec![RaySample { albedo: -1.0, falloff: 0.0, projector_pixel: u32::MAX }; w * h * n * n];
         out.par_chunks_mut((w * n * n).max(1)).enumerate().for_each(|(v, row)| {
             for u in 0..w {
                 for sv in 0..n {
@@ -136,7 +141,12 @@ impl SimProcam {
                             }
                             _ => u32::MAX,
                         };
-                        row[u * n * n + sv * n + su] = RaySample { albedo: a as f32, projector_pixel };
+                        // The board normal is the board's z axis; the projector lies on the lit side.
+                        let to_proj = proj_b - p;
+                        let d = to_proj.norm().max(1e-9);
+                        let falloff = (to_proj.z.abs() / d) * (REFERENCE_DISTANCE_M / d).powi(2);
+                        row[u * n * n + sv * n + su] =
+                            RaySample { albedo: a as f32, falloff: falloff as f32, projector_pixel };
                     }
                 }
             }
