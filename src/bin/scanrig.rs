@@ -18,6 +18,54 @@ struct Cli {
 }
 
 #[derive(Subcommand, Debug)]
+enum CalibrateCommand {
+    /// Camera, turntable and lights.
+    #[command(flatten)]
+    Rig(scanrig::calibration::cli::CalibrateCommand),
+    /// Projector-camera calibration (Moreno & Taubin local homographies) from Gray-code captures of a
+    /// chessboard, one directory per board pose; writes a TOML calibration file.
+    Projector(ProjectorArgs),
+}
+
+/// `scanrig calibrate projector` options.
+#[derive(clap::Args, Debug)]
+struct ProjectorArgs {
+    /// Capture directories (the Gray-code sequence's images, sorted by name), one per pose.
+    #[arg(long, num_args = 1.., required = true)]
+    captures: Vec<PathBuf>,
+    /// Board inner corners COLSxROWS.
+    #[arg(long)]
+    board: String,
+    /// Square size, in the unit the translation should come out in (metres for the rig).
+    #[arg(long)]
+    square: f64,
+    /// Gray-code pattern resolution WIDTHxHEIGHT, pixels.
+    #[arg(long, default_value = "1024x768")]
+    projector: String,
+    /// Projector pixels per Gray-code pixel.
+    #[arg(long, default_value_t = 1)]
+    graycode_step: u32,
+    /// A TOML file with a [camera] table (fx, fy, cx, cy, k1, k2, p1, p2, k3) holding the camera fixed.
+    #[arg(long)]
+    camera_calib: Option<PathBuf>,
+    /// A published OpenCV calibration_result.xml to compare with.
+    #[arg(long)]
+    reference: Option<PathBuf>,
+    /// Hold both devices' intrinsics at the reference's (then one pose suffices).
+    #[arg(long, requires = "reference")]
+    intrinsics_from_reference: bool,
+    /// A pixel is lit when |white - black| exceeds this (grey levels).
+    #[arg(long, default_value_t = 40)]
+    black_threshold: u8,
+    /// Every bit needs |pattern - inverse| of at least this (grey levels).
+    #[arg(long, default_value_t = 5)]
+    white_threshold: u8,
+    /// Output calibration file (TOML).
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(Subcommand, Debug)]
 enum Command {
     /// Scan with the rig described by a rig file and write the model into a directory.
     Scan {
@@ -99,12 +147,12 @@ enum Command {
         #[arg(long, hide = true)]
         root: Option<PathBuf>,
     },
-    /// Calibrate the camera, the turntable axis or the lights into a calibration file that a rig
-    /// file can point to (`[rig] calibration = "calib.toml"`).
+    /// Calibrate the camera, the turntable axis, the lights or a projector into a calibration file
+    /// (a rig file points to the camera/turntable/lights one with `[rig] calibration = "calib.toml"`).
     Calibrate {
         /// What to calibrate.
         #[command(subcommand)]
-        what: scanrig::calibration::cli::CalibrateCommand,
+        what: CalibrateCommand,
     },
     /// Check a rig file and report every problem in it.
     Validate {
@@ -263,7 +311,6 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             print!("{}", scanrig::devices::discovery::render(&scanrig::devices::discovery::discover(&root)));
             Ok(())
         }
-        Command::Calibrate { what } => Ok(scanrig::calibration::cli::run(what)?),
         Command::Validate { rig } => {
             scanrig::config::load(&rig)?;
             println!("{}: ok", rig.display());
@@ -339,6 +386,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Decode { images, projector, black_threshold, white_threshold, repeat, out } => {
             decode_capture(&images, &projector, black_threshold, white_threshold, repeat, &out)
         }
+        Command::Calibrate { what: CalibrateCommand::Rig(what) } => Ok(scanrig::calibration::cli::run(what)?),
+        Command::Calibrate { what: CalibrateCommand::Projector(args) } => calibrate_projector(args),
         Command::Status(d) => {
             let v = d.client()?.get_json("/api/v1/status")?;
             println!("{}", serde_json::to_string_pretty(&v)?);
@@ -490,4 +539,84 @@ impl Reporter {
             bar.finish_and_clear();
         }
     }
+}
+
+/// `WxH` -> (w, h).
+fn parse_size(s: &str, what: &str) -> anyhow::Result<(u32, u32)> {
+    let (a, b) = s.split_once(['x', 'X']).with_context(|| format!("{what}: expected WIDTHxHEIGHT, got {s:?}"))?;
+    Ok((
+        a.trim().parse().with_context(|| format!("{what}: bad width {a:?}"))?,
+        b.trim().parse().with_context(|| format!("{what}: bad height {b:?}"))?,
+    ))
+}
+
+fn calibrate_projector(args: ProjectorArgs) -> anyhow::Result<()> {
+    use scanrig::calibration::procam_file::{run_procam, write_procam_file, ProcamRequest};
+    let ProjectorArgs {
+        captures,
+        board,
+        square,
+        projector,
+        graycode_step,
+        camera_calib,
+        reference,
+        intrinsics_from_reference,
+        black_threshold,
+        white_threshold,
+        out,
+    } = args;
+    let (cols, rows) = parse_size(&board, "--board")?;
+    let board =
+        scanrig::calibration::BoardSpec::new(cols as usize, rows as usize, square).context("--board/--square")?;
+    let mut view = scanrig::calibration::procam::ProcamViewOptions::default();
+    view.decode.black_threshold = black_threshold;
+    view.decode.white_threshold = white_threshold;
+    if graycode_step == 0 {
+        anyhow::bail!("--graycode-step must be at least 1");
+    }
+    view.local.graycode_step = graycode_step;
+    let req = ProcamRequest {
+        captures,
+        board,
+        patterns: parse_size(&projector, "--projector")?,
+        view,
+        camera_calib,
+        reference,
+        intrinsics_from_reference,
+    };
+    let report = run_procam(&req)?;
+    for (dir, s) in req.captures.iter().zip(&report.views) {
+        println!(
+            "{}: {:.1}% decoded, {}/{} corners placed in the projector ({:.0} px per local homography, fit RMS {:.3} px)",
+            dir.display(),
+            100.0 * s.valid_fraction,
+            s.projector_corners,
+            s.camera_corners,
+            s.mean_inliers,
+            s.mean_fit_rms_px
+        );
+    }
+    let f = &report.file;
+    println!(
+        "camera    fx {:.2} fy {:.2} cx {:.2} cy {:.2} k1 {:.4} k2 {:.4}",
+        f.camera.fx, f.camera.fy, f.camera.cx, f.camera.cy, f.camera.k1, f.camera.k2
+    );
+    println!(
+        "projector fx {:.2} fy {:.2} cx {:.2} cy {:.2} k1 {:.4} k2 {:.4}",
+        f.projector.fx, f.projector.fy, f.projector.cx, f.projector.cy, f.projector.k1, f.projector.k2
+    );
+    println!("translation projector<-camera {:?}", f.translation);
+    println!("re-projection RMS: camera {:.3} px, projector {:.3} px", f.camera_rms_px, f.projector_rms_px);
+    if let Some(c) = &report.reference {
+        println!(
+            "vs reference: rotation {:.3} deg, translation {:.2}%; reference transform on these views: RMS camera {:.3} px, projector {:.3} px",
+            c.rotation_deg,
+            100.0 * c.translation_rel,
+            c.camera_rms_px,
+            c.projector_rms_px
+        );
+    }
+    write_procam_file(&out, f)?;
+    println!("wrote {}", out.display());
+    Ok(())
 }

@@ -23,6 +23,10 @@ pub mod cli;
 pub mod detect;
 pub mod file;
 mod lm;
+pub mod opencv_xml;
+pub mod procam;
+pub mod procam_file;
+pub mod procam_sim;
 pub mod turntable;
 pub mod zhang;
 
@@ -182,5 +186,7 @@ pub enum CalibrationError {
     },
 }
 
+#[cfg(test)]
+mod procam_tests;
 #[cfg(test)]
 pub(crate) mod tests;

@@ -170,7 +170,7 @@ fn homography_of_view(view: usize, src: &[Point2<f64>], dst: &[Point2<f64>]) -> 
 }
 
 /// The rotation nearest to `m` (Frobenius norm).
-fn nearest_rotation(m: &Matrix3<f64>) -> Matrix3<f64> {
+pub(super) fn nearest_rotation(m: &Matrix3<f64>) -> Matrix3<f64> {
     let svd = SVD::new(*m, true, true);
     let (Some(u), Some(vt)) = (svd.u, svd.v_t) else { return Matrix3::identity() };
     let mut r = u * vt;
@@ -279,11 +279,11 @@ fn closed_form_k(hs: &[Matrix3<f64>], fixed_pp: Option<Point2<f64>>) -> Result<M
 }
 
 /// Rotation vector (axis times angle, radians) of a rotation matrix.
-fn rotation_vector(r: &Matrix3<f64>) -> Vector3<f64> {
+pub(super) fn rotation_vector(r: &Matrix3<f64>) -> Vector3<f64> {
     Rotation3::from_matrix_unchecked(*r).scaled_axis()
 }
 
-fn pose_from_params(p: &[f64]) -> Pose {
+pub(super) fn pose_from_params(p: &[f64]) -> Pose {
     let rotation = Rotation3::from_scaled_axis(Vector3::new(p[0], p[1], p[2])).into_inner();
     Pose { rotation, translation: Vector3::new(p[3], p[4], p[5]) }
 }
