@@ -298,7 +298,7 @@ impl PointCloud {
 
     /// Remove statistical outliers (see [`PointCloud::inlier_mask`]); returns how many
     /// points were removed.
-    pub fn remove_inlier_mask(&mut self, k: usize, std_ratio: f64) -> Result<usize, CloudError> {
+    pub fn remove_statistical_outliers(&mut self, k: usize, std_ratio: f64) -> Result<usize, CloudError> {
         let keep = self.inlier_mask(k, std_ratio)?;
         let before = self.len();
         self.retain_mask(&keep);
@@ -984,7 +984,7 @@ mod tests {
             pts.push([0.1 * rng.next(), 0.1 * rng.next(), 0.03 + 0.05 * rng.next()]);
         }
         let mut cloud = PointCloud::from_points(pts);
-        let removed = cloud.remove_inlier_mask(10, 2.0).expect("params");
+        let removed = cloud.remove_statistical_outliers(10, 2.0).expect("params");
         assert!(removed >= 20 && removed < 20 + clean / 50, "{removed}");
         assert!(cloud.points().iter().all(|p| (p[2] - 0.02).abs() < 0.001));
         // Seen from below: every normal is -z.
@@ -992,7 +992,10 @@ mod tests {
         let normals = cloud.normals().expect("estimated");
         assert!(normals.iter().all(|n| n[2] < -0.99), "{:?}", normals.iter().map(|n| n[2]).fold(0.0, f32::max));
         assert!(matches!(cloud.estimate_normals(2, |_| [0.0; 3]), Err(CloudError::Parameter { name: "k", .. })));
-        assert!(matches!(cloud.remove_inlier_mask(8, f64::NAN), Err(CloudError::Parameter { name: "std_ratio", .. })));
+        assert!(matches!(
+            cloud.remove_statistical_outliers(8, f64::NAN),
+            Err(CloudError::Parameter { name: "std_ratio", .. })
+        ));
     }
 
     #[test]
@@ -1045,7 +1048,7 @@ mod tests {
             pts.push([0.08 * rng.next() - 0.04, 0.08 * rng.next() - 0.04, 0.07 * rng.next()]);
         }
         let mut cloud = PointCloud::from_points(pts);
-        let removed = cloud.remove_inlier_mask(16, 2.0).expect("params");
+        let removed = cloud.remove_statistical_outliers(16, 2.0).expect("params");
         assert!(removed >= 450, "{removed}");
         // Viewpoints outside the sphere along each point's radius.
         let pts = cloud.points().to_vec();
