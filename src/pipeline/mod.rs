@@ -12,6 +12,7 @@
 //! - [`photo_consistency`], [`voxel_coloring`]: shape and colour from photo-consistency.
 //! - [`export`]: PLY / STL / OBJ writers, written atomically.
 //! - [`cloud`]: point clouds with normals and colours: merging, normals, outlier removal, meshing.
+//! - [`laser`]: laser-stripe detection, triangulation on a laser plane, laser plane calibration.
 //! - [`structured_light`]: Gray-code patterns and their per-pixel decoding.
 
 pub mod chamfer;
@@ -19,6 +20,7 @@ pub mod cloud;
 pub mod coloring;
 pub mod depth_fusion;
 pub mod export;
+pub mod laser;
 pub mod light_calibration;
 pub mod mesh;
 pub mod occupancy;
