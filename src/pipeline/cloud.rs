@@ -16,14 +16,17 @@
 //! - Meshing ([`mesh_from_cloud`]): a signed distance to the oriented points (Hoppe et al. 1992,
 //!   "Surface reconstruction from unorganized points", smoothed as an implicit moving least-squares
 //!   average of the tangent planes of the `k` nearest points) is evaluated on the voxels of a band
-//!   around the points; the sign is propagated to the rest of the grid breadth-first (each voxel takes
-//!   the sign of the nearest band voxel, in 6-connected steps, as Hoppe's nearest-point sign would),
-//!   the grid's outer faces except its floor seeding "outside". The inside voxels form an
+//!   around the points; every other voxel takes the side of the tangent plane of its nearest point
+//!   (Hoppe's sign; the nearest point found by a Dijkstra wave from the band, a vector distance
+//!   transform) up to a reach; beyond it, voxels the grid's outer faces (other than its floor) reach
+//!   through unlabelled voxels are outside and enclosed ones inside; small inside blobs and enclosed
+//!   outside bubbles are flipped. The inside voxels form an
 //!   [`Occupancy`] whose surface is extracted by marching tetrahedra ([`extract_surface`], closed and
 //!   consistently oriented); each vertex is then moved onto the zero crossing of the signed distance
 //!   by Newton steps, for sub-voxel accuracy.
 
-use std::collections::{HashMap, VecDeque};
+use std::cmp::Reverse;
+use std::collections::{BinaryHeap, HashMap, VecDeque};
 use std::hash::{BuildHasherDefault, Hasher};
 use std::path::Path;
 
@@ -233,8 +236,10 @@ impl PointCloud {
 
     /// Estimate a unit normal per point: PCA over the point and its `k - 1` nearest neighbours (`k` in
     /// 3..=64), the direction of least variance, flipped to face `viewpoint(i)` (metres, the cloud's
-    /// frame: the sensor that saw point `i`). Points without enough neighbours get the unit vector
-    /// towards their viewpoint.
+    /// frame: the sensor that saw point `i`). Where the neighbours lie along a line (the middle
+    /// variance below [`LINEAR_RATIO`] of the largest, as on one densely sampled laser stripe) the
+    /// PCA is repeated over 64 neighbours, which reach the adjacent stripes. Points without enough
+    /// neighbours get the unit vector towards their viewpoint.
     pub fn estimate_normals<F>(&mut self, k: usize, viewpoint: F) -> Result<(), CloudError>
     where
         F: Fn(usize) -> [f32; 3] + Sync,
@@ -248,7 +253,12 @@ impl PointCloud {
             .map_init(Vec::new, |buf, (i, p)| {
                 index.k_nearest(p, k, buf);
                 let view = (Vector3::from(viewpoint(i)) - Vector3::from(*p)).cast::<f64>();
-                let n = if buf.len() >= 3 { pca_normal(&self.points, buf) } else { None };
+                let mut n = if buf.len() >= 3 { pca_normal(&self.points, buf) } else { None };
+                if k < MAX_K && matches!(n, Some((_, true))) {
+                    index.k_nearest(p, MAX_K, buf);
+                    n = pca_normal(&self.points, buf);
+                }
+                let n = n.map(|(n, _)| n);
                 let n = n.unwrap_or_else(|| view.try_normalize(0.0).unwrap_or(Vector3::z()));
                 let n = if n.dot(&view) < 0.0 { -n } else { n };
                 [n.x as f32, n.y as f32, n.z as f32]
@@ -393,15 +403,29 @@ impl PointCloud {
 }
 
 fn check_k(k: usize) -> Result<(), CloudError> {
-    if (3..=64).contains(&k) {
+    if (3..=MAX_K).contains(&k) {
         Ok(())
     } else {
         Err(CloudError::Parameter { name: "k", value: k as f64, expected: "3..=64 neighbours" })
     }
 }
 
-/// The direction of least variance of the points `neighbours` index (unit, unoriented).
-fn pca_normal(points: &[[f32; 3]], neighbours: &[(f32, u32)]) -> Option<Vector3<f64>> {
+/// A point of a cloud being meshed needs this many other points within [`SUPPORT_KERNELS`] kernel
+/// widths, or it is left out as stray.
+const SUPPORT_NEIGHBOURS: usize = 3;
+/// See [`SUPPORT_NEIGHBOURS`].
+const SUPPORT_KERNELS: f64 = 3.0;
+
+/// Largest neighbour count of the k-nearest-neighbour operations.
+const MAX_K: usize = 64;
+
+/// A neighbourhood whose middle principal variance is below this fraction of the largest counts as
+/// a line (see [`PointCloud::estimate_normals`]).
+pub const LINEAR_RATIO: f64 = 0.05;
+
+/// The direction of least variance of the points `neighbours` index (unit, unoriented), and whether
+/// the neighbourhood is linear (see [`LINEAR_RATIO`]).
+fn pca_normal(points: &[[f32; 3]], neighbours: &[(f32, u32)]) -> Option<(Vector3<f64>, bool)> {
     let n = neighbours.len() as f64;
     let mut mean = Vector3::zeros();
     for (_, i) in neighbours {
@@ -414,9 +438,11 @@ fn pca_normal(points: &[[f32; 3]], neighbours: &[(f32, u32)]) -> Option<Vector3<
         cov += d * d.transpose();
     }
     let eig = SymmetricEigen::new(cov);
-    let (imin, _) = eig.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
-    let v = eig.eigenvectors.column(imin).into_owned();
-    v.try_normalize(1e-12)
+    let mut idx = [0usize, 1, 2];
+    idx.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
+    let linear = eig.eigenvalues[idx[1]] < LINEAR_RATIO * eig.eigenvalues[idx[2]];
+    let v = eig.eigenvectors.column(idx[0]).into_owned();
+    v.try_normalize(1e-12).map(|v| (v, linear))
 }
 
 /// A k-nearest-neighbour index over a fixed set of points (metres): a hash of cubic cells, queried by
@@ -690,6 +716,11 @@ pub struct CloudMeshParams {
     /// Whether the grid's floor (its `z`-minimum face) is left unseeded, as for an object standing on
     /// the turntable top: the floor is then closed by the grid's boundary instead of being "outside".
     pub floor_is_support: bool,
+    /// How far from the band a voxel takes the side of its nearest point's tangent plane (Hoppe's
+    /// sign), voxel edges. Hoppe's sign closes holes in the sampling flat (an unseen patch of a
+    /// floor); the limit keeps a stray point from claiming a large region. Beyond it, a voxel is
+    /// outside if the seeded outer faces reach it through such voxels, else inside (enclosed).
+    pub hoppe_reach_voxels: f64,
     /// Connected inside components (6-connected voxels) smaller than this fraction of the largest are
     /// dropped (blobs around stray points), and outside components enclosed by the surface that are
     /// smaller are filled (bubbles); 0 keeps everything.
@@ -698,7 +729,14 @@ pub struct CloudMeshParams {
 
 impl Default for CloudMeshParams {
     fn default() -> Self {
-        CloudMeshParams { k: 8, kernel_m: None, band_voxels: 2.0, floor_is_support: true, min_component_fraction: 0.02 }
+        CloudMeshParams {
+            k: 8,
+            kernel_m: None,
+            band_voxels: 2.0,
+            floor_is_support: true,
+            hoppe_reach_voxels: 8.0,
+            min_component_fraction: 0.02,
+        }
     }
 }
 
@@ -716,16 +754,16 @@ pub struct CloudMeshStats {
 }
 
 /// The signed distance field of an oriented cloud (module docs), metres, positive outside.
-struct SignedDistance<'a> {
+struct SignedDistance {
     index: KnnIndex,
-    normals: &'a [[f32; 3]],
+    normals: Vec<[f32; 3]>,
     k: usize,
     inv_h2: f32,
     /// Points farther than this (metres) are not consulted.
     max_m: f32,
 }
 
-impl SignedDistance<'_> {
+impl SignedDistance {
     /// Signed distance and its gradient direction (the weighted mean normal) at `p`.
     fn eval(&self, p: &[f32; 3], buf: &mut Vec<(f32, u32)>) -> Option<(f32, [f32; 3])> {
         self.index.k_nearest_within(p, self.k, self.max_m, buf);
@@ -753,18 +791,50 @@ pub fn mesh_from_cloud(
     grid: &VoxelGrid,
     params: &CloudMeshParams,
 ) -> Result<(TriangleMesh, CloudMeshStats), CloudError> {
+    solid_and_mesh_from_cloud(cloud, grid, params).map(|(_, mesh, stats)| (mesh, stats))
+}
+
+/// As [`mesh_from_cloud`], also returning the solid the mesh bounds (the inside voxels of `grid`).
+pub fn solid_and_mesh_from_cloud(
+    cloud: &PointCloud,
+    grid: &VoxelGrid,
+    params: &CloudMeshParams,
+) -> Result<(Occupancy, TriangleMesh, CloudMeshStats), CloudError> {
     check_k(params.k)?;
     let normals = cloud.normals().ok_or(CloudError::NoNormals)?;
     if !(params.band_voxels.is_finite() && params.band_voxels >= 1.0) {
         return Err(CloudError::Parameter { name: "band_voxels", value: params.band_voxels, expected: ">= 1" });
     }
+    if !(params.hoppe_reach_voxels.is_finite() && params.hoppe_reach_voxels >= 0.0) {
+        let value = params.hoppe_reach_voxels;
+        return Err(CloudError::Parameter { name: "hoppe_reach_voxels", value, expected: ">= 0" });
+    }
+    if !(params.min_component_fraction.is_finite() && (0.0..=1.0).contains(&params.min_component_fraction)) {
+        let value = params.min_component_fraction;
+        return Err(CloudError::Parameter { name: "min_component_fraction", value, expected: "0..=1" });
+    }
     let h = params.kernel_m.unwrap_or(grid.voxel_size);
     if !(h.is_finite() && h > 0.0) {
         return Err(CloudError::Parameter { name: "kernel_m", value: h, expected: "positive, finite" });
     }
+    // Points without support (fewer than SUPPORT_NEIGHBOURS others within SUPPORT_KERNELS kernel
+    // widths) are stray: they would put a patch of surface of their own into the field.
+    let all = KnnIndex::new(cloud.points());
+    let support_m = (SUPPORT_KERNELS * h) as f32;
+    let supported: Vec<bool> = cloud
+        .points()
+        .par_iter()
+        .map_init(Vec::new, |buf, p| {
+            all.k_nearest_within(p, SUPPORT_NEIGHBOURS + 1, support_m, buf);
+            buf.len() > SUPPORT_NEIGHBOURS
+        })
+        .collect();
+    drop(all);
+    let kept =
+        |v: &[[f32; 3]]| -> Vec<[f32; 3]> { v.iter().zip(&supported).filter(|(_, &s)| s).map(|(x, _)| *x).collect() };
     let sdf = SignedDistance {
-        index: KnnIndex::new(cloud.points()),
-        normals,
+        index: KnnIndex::new(&kept(cloud.points())),
+        normals: kept(normals),
         k: params.k,
         inv_h2: (1.0 / (h * h)) as f32,
         // Band voxels and refined vertices lie within the band (plus a voxel) of their nearest point,
@@ -777,7 +847,7 @@ pub fn mesh_from_cloud(
     let band_m = params.band_voxels * vs;
     let reach = params.band_voxels.ceil() as i64;
     let mut in_band = vec![false; grid.len()];
-    for p in cloud.points() {
+    for p in sdf.index.points() {
         let f = [0, 1, 2].map(|a| (f64::from(p[a]) - grid.origin[a]) / vs - 0.5);
         if !f.iter().all(|x| x.is_finite()) {
             continue;
@@ -803,36 +873,93 @@ pub fn mesh_from_cloud(
         return Err(CloudError::NoPointsInGrid);
     }
     let unravel = |idx: usize| [idx % dims[0], (idx / dims[0]) % dims[1], idx / (dims[0] * dims[1])];
-    // 2. Signs on the band.
-    let band_signs: Vec<i8> = band
+    // 2. Signs on the band, and each band voxel's nearest point.
+    let band_eval: Vec<(i8, u32, f32)> = band
         .par_iter()
         .map_init(Vec::new, |buf, &idx| {
             let [i, j, k] = unravel(idx);
             let c = grid.centre(i, j, k);
-            match sdf.eval(&[c.x as f32, c.y as f32, c.z as f32], buf) {
+            let sign = match sdf.eval(&[c.x as f32, c.y as f32, c.z as f32], buf) {
                 Some((d, _)) if d < 0.0 => -1,
                 _ => 1,
-            }
+            };
+            let (d2, near) = buf.first().copied().unwrap_or((f32::INFINITY, u32::MAX));
+            (sign, near, d2)
         })
         .collect();
-    // 3. Breadth-first sign propagation from the band and the outer faces (outside).
+    // 3. Every other voxel takes the side of the tangent plane of its nearest point (Hoppe's sign),
+    //    the nearest point found by a Dijkstra wave over the voxels from the band (a vector distance
+    //    transform), up to `hoppe_reach_voxels` from the band.
     let mut label = vec![0i8; grid.len()];
-    let mut queue = VecDeque::with_capacity(grid.len() / 4);
-    for (&idx, &s) in band.iter().zip(&band_signs) {
-        label[idx] = s;
-        queue.push_back(idx);
+    let mut near = vec![u32::MAX; grid.len()];
+    let mut dist2 = vec![f32::INFINITY; grid.len()];
+    let mut heap = BinaryHeap::with_capacity(band.len());
+    for (&idx, &(sign, p, d2)) in band.iter().zip(&band_eval) {
+        label[idx] = sign;
+        if p != u32::MAX {
+            near[idx] = p;
+            dist2[idx] = d2;
+            heap.push(Reverse((d2.to_bits(), idx)));
+        }
     }
+    let points = sdf.index.points();
+    let normals = &sdf.normals;
+    let reach2 = ((params.hoppe_reach_voxels * vs).powi(2)) as f32;
+    while let Some(Reverse((bits, idx))) = heap.pop() {
+        if f32::from_bits(bits) > dist2[idx] {
+            continue;
+        }
+        let [i, j, k] = unravel(idx);
+        let p = points[near[idx] as usize];
+        let mut offer = |n: usize, c: [usize; 3]| {
+            if in_band[n] {
+                return;
+            }
+            let q = grid.centre(c[0], c[1], c[2]);
+            let d2 = (q.x as f32 - p[0]).powi(2) + (q.y as f32 - p[1]).powi(2) + (q.z as f32 - p[2]).powi(2);
+            if d2 < dist2[n] && d2 <= reach2 {
+                dist2[n] = d2;
+                near[n] = near[idx];
+                heap.push(Reverse((d2.to_bits(), n)));
+            }
+        };
+        if i > 0 {
+            offer(idx - 1, [i - 1, j, k]);
+        }
+        if i + 1 < dims[0] {
+            offer(idx + 1, [i + 1, j, k]);
+        }
+        if j > 0 {
+            offer(idx - dims[0], [i, j - 1, k]);
+        }
+        if j + 1 < dims[1] {
+            offer(idx + dims[0], [i, j + 1, k]);
+        }
+        if k > 0 {
+            offer(idx - dims[0] * dims[1], [i, j, k - 1]);
+        }
+        if k + 1 < dims[2] {
+            offer(idx + dims[0] * dims[1], [i, j, k + 1]);
+        }
+    }
+    label.par_iter_mut().enumerate().for_each(|(idx, l)| {
+        if in_band[idx] || near[idx] == u32::MAX {
+            return;
+        }
+        let [i, j, k] = unravel(idx);
+        let c = grid.centre(i, j, k);
+        let (x, n) = (points[near[idx] as usize], normals[near[idx] as usize]);
+        let d = (c.x as f32 - x[0]) * n[0] + (c.y as f32 - x[1]) * n[1] + (c.z as f32 - x[2]) * n[2];
+        *l = if d < 0.0 { -1 } else { 1 };
+    });
+    // 4. Beyond that reach: what the seeded outer faces reach through unlabelled voxels is outside
+    //    (the air around the object and in its open concavities), the rest is enclosed: inside.
+    let mut queue = VecDeque::with_capacity(grid.len() / 4);
     for k in 0..dims[2] {
         for j in 0..dims[1] {
             for i in 0..dims[0] {
-                let face = i == 0
-                    || j == 0
-                    || i + 1 == dims[0]
-                    || j + 1 == dims[1]
-                    || k + 1 == dims[2]
-                    || (k == 0 && !params.floor_is_support);
                 let idx = grid.index(i, j, k);
-                if face && label[idx] == 0 {
+                if label[idx] == 0 && on_seeded_face(grid, params, i, j, k) {
                     label[idx] = 1;
                     queue.push_back(idx);
                 }
@@ -841,10 +968,9 @@ pub fn mesh_from_cloud(
     }
     while let Some(idx) = queue.pop_front() {
         let [i, j, k] = unravel(idx);
-        let s = label[idx];
         let mut visit = |n: usize| {
             if label[n] == 0 {
-                label[n] = s;
+                label[n] = 1;
                 queue.push_back(n);
             }
         };
@@ -866,6 +992,9 @@ pub fn mesh_from_cloud(
         if k + 1 < dims[2] {
             visit(idx + dims[0] * dims[1]);
         }
+    }
+    for l in label.iter_mut().filter(|l| **l == 0) {
+        *l = -1;
     }
     let flipped = drop_small_components(&mut label, grid, params);
     let occupancy = Occupancy::from_index_fn(*grid, |i, j, k| label[grid.index(i, j, k)] < 0);
@@ -905,7 +1034,7 @@ pub fn mesh_from_cloud(
         flipped_voxels: flipped,
         refined_vertices: refined as u64,
     };
-    Ok((mesh, stats))
+    Ok((occupancy, mesh, stats))
 }
 
 #[cfg(test)]
@@ -1052,7 +1181,7 @@ mod tests {
         assert!(removed >= 450, "{removed}");
         // Viewpoints outside the sphere along each point's radius.
         let pts = cloud.points().to_vec();
-        cloud.estimate_normals(16, |i| pts[i].map(|x| 3.0 * x)).expect("params");
+        cloud.estimate_normals(16, |i| [0, 1, 2].map(|a| c[a] + 3.0 * (pts[i][a] - c[a]))).expect("params");
         let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.036, -0.036, 0.0], max: [0.036, 0.036, 0.066] }, 60);
         let (mesh, stats) = mesh_from_cloud(&cloud, &grid, &CloudMeshParams::default()).expect("mesh");
         assert_eq!(mesh.open_or_misoriented_edges(), 0);

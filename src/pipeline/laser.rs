@@ -209,7 +209,7 @@ impl Plane {
     pub fn through(point: [f64; 3], normal: [f64; 3]) -> Result<Plane, LaserError> {
         let n = Vector3::from(normal);
         let len = n.norm();
-        if !(len.is_finite() && len > 0.0) || !point.iter().all(|x| x.is_finite()) {
+        if !(len.is_finite() && len > 0.0 && point.iter().all(|x| x.is_finite())) {
             return Err(LaserError::DegeneratePlane { normal });
         }
         let n = n / len;

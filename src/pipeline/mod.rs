@@ -33,7 +33,9 @@ pub mod structured_light;
 pub mod voxel_coloring;
 
 pub use chamfer::{chamfer_distance, sample_mesh, Chamfer, PointIndex};
-pub use cloud::{mesh_from_cloud, CloudError, CloudMeshParams, CloudMeshStats, KnnIndex, PointCloud};
+pub use cloud::{
+    mesh_from_cloud, solid_and_mesh_from_cloud, CloudError, CloudMeshParams, CloudMeshStats, KnnIndex, PointCloud,
+};
 pub use coloring::{color_vertices, ColorView};
 pub use depth_fusion::{DepthFusionError, FusionParams, IntegrateStats, Tsdf};
 pub use export::ExportError;
