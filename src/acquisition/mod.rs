@@ -10,9 +10,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 mod depth;
+mod laser;
 mod per_light;
 
 pub use depth::{capture_fresh_depth, run_depth_scan, DepthView};
+pub use laser::{run_laser_scan, LaserView};
 pub use per_light::{run_per_light_scan, PerLightView};
 
 use crate::config::ScanPlan;

@@ -402,6 +402,12 @@ impl RigConfig {
                 bad("reconstruction.depth_fusion.truncation_voxels", "must be a positive number of voxels".into());
             }
         }
+        if self.reconstruction.method == Method::Laser {
+            let lasers = self.lights.as_ref().map_or(0, |l| l.lasers.len());
+            for (key, message) in self.reconstruction.laser.problems(lasers) {
+                bad(&key, message);
+            }
+        }
         if plan.capture_timeout_ms == 0 {
             bad("scan.capture_timeout_ms", "must be at least 1".into());
         }

@@ -634,7 +634,7 @@ fn default_max_stale() -> u32 {
 #[serde(deny_unknown_fields)]
 pub struct ReconstructionConfig {
     /// Method: `"space-carving"`, `"shadow-carving"`, `"depth-fusion"`, `"voxel-coloring"` or
-    /// `"space-carving-photo"`.
+    /// `"space-carving-photo"` or `"laser"`.
     pub method: Method,
     /// Working volume minimum corner, object frame, metres.
     pub bbox_min_m: [f64; 3],
@@ -654,6 +654,9 @@ pub struct ReconstructionConfig {
     /// `[reconstruction.photo]`: photo-consistency methods only.
     #[serde(default)]
     pub photo: PhotoConfig,
+    /// `[reconstruction.laser]`: method `laser` only.
+    #[serde(default)]
+    pub laser: LaserScanConfig,
 }
 
 /// `[reconstruction.depth_fusion]`: the TSDF of method `depth-fusion`.
@@ -700,6 +703,9 @@ pub enum Method {
     VoxelColoring,
     /// Generalized space carving by photo-consistency, from the visual hull (any camera placement).
     SpaceCarvingPhoto,
+    /// Laser-stripe triangulation over turntable positions with the lasers of
+    /// `[reconstruction.laser]`, a point cloud, and a mesh from it.
+    Laser,
 }
 
 impl Method {
@@ -711,6 +717,7 @@ impl Method {
             Method::DepthFusion => "depth-fusion",
             Method::VoxelColoring => "voxel-coloring",
             Method::SpaceCarvingPhoto => "space-carving-photo",
+            Method::Laser => "laser",
         }
     }
 
@@ -815,4 +822,137 @@ pub struct MeshConfig {
     /// is not a staircase; 0 = raw occupancy.
     #[serde(default)]
     pub smooth_radius: u32,
+}
+
+/// `[reconstruction.laser]`: stripe detection, point cloud clean-up and meshing of method `laser`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LaserScanConfig {
+    /// Indices of the `[[lights.laser]]` entries to scan with, each captured on its own at every
+    /// position; empty = every configured laser.
+    #[serde(default)]
+    pub lasers: Vec<usize>,
+    /// Smallest laser signal (on minus off, weighted by the laser colour) of a stripe pixel, 8-bit levels.
+    #[serde(default = "default_laser_min_peak")]
+    pub min_peak: f64,
+    /// Widest run of stripe pixels accepted in an image row, pixels.
+    #[serde(default = "default_laser_max_width")]
+    pub max_width_px: u32,
+    /// Half-width of the sub-pixel centre-of-mass window, pixels.
+    #[serde(default = "default_laser_half_window")]
+    pub half_window_px: u32,
+    /// Neighbours for normal estimation and for the outlier test (3..=64).
+    #[serde(default = "default_laser_neighbours")]
+    pub neighbours: usize,
+    /// Outlier test: a point whose mean neighbour distance exceeds the cloud's mean by this many
+    /// standard deviations is removed.
+    #[serde(default = "default_laser_std_ratio")]
+    pub outlier_std_ratio: f64,
+    /// Oriented points averaged per signed-distance evaluation when meshing (3..=64).
+    #[serde(default = "default_laser_mesh_neighbours")]
+    pub mesh_neighbours: usize,
+    /// Edge of the cubes the merged cloud is thinned to before normals and meshing, in voxels of the
+    /// working grid (one point per cube: the mean). Thinning evens out the density of laser data,
+    /// dense along each stripe and sparse across stripes, so a point's nearest neighbours span several
+    /// stripes (the points of one stripe lie in one plane, the laser's, whose normal PCA would
+    /// otherwise return); 0 keeps every point.
+    #[serde(default = "default_laser_thin")]
+    pub thin_voxels: f64,
+    /// Whether to write every laser-off and laser-on frame as PNG under `frames/`.
+    #[serde(default = "default_true")]
+    pub save_frames: bool,
+}
+
+fn default_true() -> bool {
+    true
+}
+
+fn default_laser_min_peak() -> f64 {
+    40.0
+}
+fn default_laser_max_width() -> u32 {
+    8
+}
+fn default_laser_half_window() -> u32 {
+    3
+}
+fn default_laser_neighbours() -> usize {
+    16
+}
+fn default_laser_std_ratio() -> f64 {
+    2.0
+}
+fn default_laser_thin() -> f64 {
+    1.0
+}
+fn default_laser_mesh_neighbours() -> usize {
+    8
+}
+
+impl Default for LaserScanConfig {
+    fn default() -> Self {
+        LaserScanConfig {
+            lasers: Vec::new(),
+            min_peak: default_laser_min_peak(),
+            max_width_px: default_laser_max_width(),
+            half_window_px: default_laser_half_window(),
+            neighbours: default_laser_neighbours(),
+            outlier_std_ratio: default_laser_std_ratio(),
+            mesh_neighbours: default_laser_mesh_neighbours(),
+            thin_voxels: default_laser_thin(),
+            save_frames: true,
+        }
+    }
+}
+
+impl LaserScanConfig {
+    /// The problems of this section for a rig with `lasers` configured lasers, as
+    /// `(key, message)` pairs (empty when it is valid).
+    pub fn problems(&self, lasers: usize) -> Vec<(String, String)> {
+        let mut out = Vec::new();
+        let key = |k: &str| format!("reconstruction.laser.{k}");
+        if lasers == 0 {
+            out.push(("lights.laser".to_owned(), "method \"laser\" needs at least one [[lights.laser]]".to_owned()));
+        }
+        for (i, &l) in self.lasers.iter().enumerate() {
+            if l >= lasers {
+                out.push((
+                    key(&format!("lasers.{i}")),
+                    format!("laser {l} does not exist: the rig has {lasers} laser(s)"),
+                ));
+            } else if self.lasers[..i].contains(&l) {
+                out.push((key(&format!("lasers.{i}")), format!("laser {l} is named twice")));
+            }
+        }
+        if !(self.min_peak.is_finite() && self.min_peak > 0.0 && self.min_peak < 256.0) {
+            out.push((key("min_peak"), format!("must be in (0, 256) levels, got {}", self.min_peak)));
+        }
+        if self.max_width_px == 0 {
+            out.push((key("max_width_px"), "must be at least 1 pixel".to_owned()));
+        }
+        for (name, k) in [("neighbours", self.neighbours), ("mesh_neighbours", self.mesh_neighbours)] {
+            if !(3..=64).contains(&k) {
+                out.push((key(name), format!("must be between 3 and 64, got {k}")));
+            }
+        }
+        if !(self.thin_voxels.is_finite() && self.thin_voxels >= 0.0) {
+            out.push((
+                key("thin_voxels"),
+                format!("must be 0 or a positive number of voxels, got {}", self.thin_voxels),
+            ));
+        }
+        if !(self.outlier_std_ratio.is_finite() && self.outlier_std_ratio > 0.0) {
+            out.push((key("outlier_std_ratio"), format!("must be positive, got {}", self.outlier_std_ratio)));
+        }
+        out
+    }
+
+    /// The lasers to scan with, given `lasers` configured ones: the listed indices, or all.
+    pub fn selected(&self, lasers: usize) -> Vec<usize> {
+        if self.lasers.is_empty() {
+            (0..lasers).collect()
+        } else {
+            self.lasers.clone()
+        }
+    }
 }

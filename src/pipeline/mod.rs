@@ -11,12 +11,16 @@
 //! - [`coloring`]: per-vertex colours from calibrated images.
 //! - [`photo_consistency`], [`voxel_coloring`]: shape and colour from photo-consistency.
 //! - [`export`]: PLY / STL / OBJ writers, written atomically.
+//! - [`cloud`]: point clouds with normals and colours: merging, normals, outlier removal, meshing.
+//! - [`laser`]: laser-stripe detection, triangulation on a laser plane, laser plane calibration.
 //! - [`structured_light`]: Gray-code patterns and their per-pixel decoding.
 
 pub mod chamfer;
+pub mod cloud;
 pub mod coloring;
 pub mod depth_fusion;
 pub mod export;
+pub mod laser;
 pub mod light_calibration;
 pub mod mesh;
 pub mod occupancy;
@@ -29,6 +33,9 @@ pub mod structured_light;
 pub mod voxel_coloring;
 
 pub use chamfer::{chamfer_distance, sample_mesh, Chamfer, PointIndex};
+pub use cloud::{
+    mesh_from_cloud, solid_and_mesh_from_cloud, CloudError, CloudMeshParams, CloudMeshStats, KnnIndex, PointCloud,
+};
 pub use coloring::{color_vertices, ColorView};
 pub use depth_fusion::{DepthFusionError, FusionParams, IntegrateStats, Tsdf};
 pub use export::ExportError;

@@ -3,6 +3,7 @@
 //! pipeline on a calibrated image set on disk. Both write the same outputs (see [`output`]).
 
 pub mod depth;
+pub mod laser;
 pub mod output;
 pub mod photo;
 pub mod reconstruct;
@@ -90,6 +91,9 @@ pub enum ScanError {
     /// Depth fusion rejected its input.
     #[error("depth fusion failed")]
     DepthFusion(#[source] crate::pipeline::DepthFusionError),
+    /// Laser stripe triangulation or the point cloud failed.
+    #[error("laser scanning failed")]
+    Laser(#[source] laser::LaserScanError),
 }
 
 /// What a running scan tells its caller.
@@ -178,6 +182,9 @@ pub fn run_scan(
     }
     if config.reconstruction.method == crate::config::Method::DepthFusion {
         return depth::run_depth_scan(config, out, cancel, events);
+    }
+    if config.reconstruction.method == crate::config::Method::Laser {
+        return laser::run_laser_scan(config, out, None, cancel, events);
     }
     let started = Instant::now();
     let out = OutputDir::prepare(out)?;

@@ -155,6 +155,12 @@ impl Jobs {
                 problem: "shadow-carving and depth-fusion scans run with `scanrig scan`, not yet in the daemon",
             });
         }
+        if config.reconstruction.method == Method::Laser {
+            return Err(JobError::Invalid {
+                field: "method",
+                problem: "laser scans run with `scanrig scan`, not yet in the daemon",
+            });
+        }
         if let Some(n) = req.positions {
             if !(3..=720).contains(&n) {
                 return Err(JobError::Invalid { field: "positions", problem: "must be 3..=720" });
