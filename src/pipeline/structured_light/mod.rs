@@ -4,15 +4,18 @@
 //! - [`patterns`]: the sequence (column pairs MSB first, row pairs, white, black) for any
 //!   projector resolution.
 //! - [`decode`](mod@decode): the row-wise, rayon-parallel decoder with black/white thresholds.
+//! - [`coords`]: continuous per-pixel projector coordinates, the input of triangulation.
 //! - [`capture`]: loading a captured sequence from a directory, with errors naming the file.
 
 pub mod capture;
+pub mod coords;
 pub mod decode;
 pub mod patterns;
 
 use std::path::{Path, PathBuf};
 
 pub use capture::{list_images, load_capture_dir, load_capture_files, Capture, CaptureError};
+pub use coords::{CoordsError, ProjectorCoords};
 pub use decode::{decode, DecodeError, DecodeParams, ProjectorMap, INVALID};
 pub use patterns::{Coding, GrayCodePatterns, PatternError, PatternKind};
 
