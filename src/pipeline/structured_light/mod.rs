@@ -5,12 +5,17 @@
 //!   projector resolution.
 //! - [`decode`](mod@decode): the row-wise, rayon-parallel decoder with black/white thresholds.
 //! - [`coords`]: continuous per-pixel projector coordinates, the input of triangulation.
+//! - [`subpixel`]: stripe-edge interpolation of a decoded map into sub-pixel coordinates.
+//! - [`triangulate`](mod@triangulate): camera ray against projector column plane or ray, with
+//!   distortion, into a range image with normals, colours and outlier removal.
 //! - [`capture`]: loading a captured sequence from a directory, with errors naming the file.
 
 pub mod capture;
 pub mod coords;
 pub mod decode;
 pub mod patterns;
+pub mod subpixel;
+pub mod triangulate;
 
 use std::path::{Path, PathBuf};
 
@@ -18,6 +23,8 @@ pub use capture::{list_images, load_capture_dir, load_capture_files, Capture, Ca
 pub use coords::{CoordsError, ProjectorCoords};
 pub use decode::{decode, DecodeError, DecodeParams, ProjectorMap, INVALID};
 pub use patterns::{Coding, GrayCodePatterns, PatternError, PatternKind};
+pub use subpixel::interpolate_stripe_edges;
+pub use triangulate::{triangulate, RangeImage, TriangulateError, TriangulationParams};
 
 /// Errors of [`save_map_png`].
 #[derive(Debug, thiserror::Error)]
