@@ -51,6 +51,12 @@ pub struct StructuredLightConfig {
     /// TSDF truncation distance, voxels of the reconstruction grid.
     #[serde(default = "default_truncation_voxels")]
     pub truncation_voxels: f64,
+    /// A camera pixel without a point whose fully lit frame is darker than this (8-bit grey) saw the
+    /// empty background, so its ray is free space in the fusion; other pixels without a point
+    /// (projector shadows, weak codes) are unknown. 0 (default) treats every such pixel as unknown:
+    /// only surface points then carve free space.
+    #[serde(default)]
+    pub free_below: u8,
 }
 
 fn default_black_threshold() -> u8 {
@@ -87,6 +93,7 @@ impl Default for StructuredLightConfig {
             min_neighbours: default_min_neighbours(),
             neighbour_tolerance_m: default_neighbour_tolerance(),
             truncation_voxels: default_truncation_voxels(),
+            free_below: 0,
         }
     }
 }
