@@ -15,7 +15,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use super::report::{GroundTruth, Report, Timings};
+use super::report::{GroundTruth, Report, Timings, VisualHull};
 use super::{ScanError, ScanEvent};
 use crate::acquisition::{self, CancelToken, PatternStack};
 use crate::config::structured_light::{StripeCoding, StructuredLightConfig};
@@ -28,7 +28,8 @@ use crate::pipeline::structured_light::{
     ProjectorCoords, ProjectorMap, RangeImage, TriangulateError, TriangulationParams,
 };
 use crate::pipeline::{
-    chamfer_distance, extract_surface, sample_mesh, DepthFusionError, FusionParams, MeshParams, Occupancy, Tsdf,
+    chamfer_distance, extract_surface, sample_mesh, CarveError, DepthFusionError, FusionParams, Mask, MeshParams,
+    Occupancy, SpaceCarver, Tsdf,
 };
 
 /// Surface samples per side for the Chamfer distance.
@@ -82,6 +83,9 @@ pub enum StructuredLightError {
     /// The TSDF rejected its input.
     #[error("fusing the range images")]
     Fusion(#[source] DepthFusionError),
+    /// The visual hull of the white frames' silhouettes (for comparison) could not be carved.
+    #[error("carving the visual hull")]
+    Hull(#[source] CarveError),
 }
 
 /// What the structured-light pipeline did, for `report.json` (key `structured_light`).
@@ -111,6 +115,11 @@ pub struct StructuredLightSummary {
     pub refined_vertices: usize,
     /// TSDF truncation distance, metres.
     pub truncation_m: f64,
+    /// Simulated rig only: mean distance, metres, from each cloud point to where its camera ray
+    /// really meets the scene (the triangulation error before fusion).
+    pub point_error_mean_m: Option<f64>,
+    /// Simulated rig only: root mean square of the same distances, metres.
+    pub point_error_rms_m: Option<f64>,
     /// Seconds spent decoding.
     pub decode_s: f64,
     /// Seconds spent triangulating.
@@ -228,6 +237,28 @@ where
     write_atomic(file, &png).map_err(ScanError::Export)
 }
 
+/// Distances from each point of `range` to the true surface along its camera ray (`camera` in the
+/// object frame): `(sum, sum of squares, count)`, metres. A point whose ray misses the scene is
+/// skipped (it cannot be scored).
+fn point_errors(camera: &CameraModel, range: &RangeImage, scene: &crate::sim::Scene) -> (f64, f64, usize) {
+    let o = camera.centre();
+    let w = range.width as usize;
+    let (mut sum, mut sq, mut n) = (0.0, 0.0, 0);
+    for (i, p) in range.points.iter().enumerate() {
+        if range.depth_m[i] <= 0.0 {
+            continue;
+        }
+        let d = camera.pixel_ray((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
+        if let Some(hit) = scene.intersect(&o, &d, 0.0, f64::INFINITY) {
+            let e = (nalgebra::Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])) - hit.point).norm();
+            sum += e;
+            sq += e * e;
+            n += 1;
+        }
+    }
+    (sum, sq, n)
+}
+
 /// Scan the rig described by `config` with structured light and write the results into `out`.
 pub fn run_structured_light_scan(
     config: &RigConfig,
@@ -265,6 +296,13 @@ pub fn run_structured_light_scan(
         missing_is_free: true,
     };
     let mut tsdf = Tsdf::new(grid, fusion).map_err(|e| sl_err(StructuredLightError::Fusion(e)))?;
+    // For comparison: the visual hull of the white frames' silhouettes (pixels not darker than
+    // `free_below`), what space carving alone would give. Only with a background level.
+    let mut hull = if settings.free_below > 0 {
+        Some(SpaceCarver::new(grid).map_err(|e| sl_err(StructuredLightError::Hull(e)))?)
+    } else {
+        None
+    };
     let camera = config.camera.model();
     let tri = TriangulationParams {
         max_ray_gap_m: settings.max_ray_gap_m,
@@ -283,6 +321,7 @@ pub fn run_structured_light_scan(
     let (mut cloud, mut normals, mut colours) = (Vec::new(), Vec::new(), Vec::new());
     let mut map = ProjectorMap::new();
     let mut timings = Timings::default();
+    let (mut err_sum, mut err_sq, mut err_n) = (0.0f64, 0.0f64, 0usize);
 
     let plan = config.scan.clone();
     let (frames, capture_s) = super::acquire_and_process(
@@ -338,10 +377,24 @@ pub fn run_structured_light_scan(
                 colours.push(c);
             }
             summary.points_per_view.push(cloud.len() - before);
+            if let Some(world) = &sim {
+                let (sum, sq, n) = point_errors(&cam, &range, world.scene());
+                err_sum += sum;
+                err_sq += sq;
+                err_n += n;
+            }
             let t = Instant::now();
             let depth = fusion_depth(&range, &white_grey, settings.free_below);
             let stats = tsdf.integrate(&cam, &depth).map_err(|e| sl_err(StructuredLightError::Fusion(e)))?;
             summary.integrate_s += t.elapsed().as_secs_f64();
+            if let Some(hull) = hull.as_mut() {
+                let t = Instant::now();
+                let mask = Mask::from_fn(camera.width, camera.height, |u, v| {
+                    white_grey[(v * camera.width + u) as usize] >= settings.free_below
+                });
+                hull.add_view(&cam, &mask).map_err(|e| sl_err(StructuredLightError::Hull(e)))?;
+                timings.silhouette += t.elapsed().as_secs_f64();
+            }
             tracing::debug!(position, decoded = range.decoded, points = cloud.len() - before, "view triangulated");
             events(ScanEvent::ViewProcessed { position, occupied: stats.near_surface });
             Ok(())
@@ -351,6 +404,10 @@ pub fn run_structured_light_scan(
     timings.carve = summary.decode_s + summary.triangulate_s + summary.integrate_s;
     let views = summary.decoded.len();
     summary.points = cloud.len();
+    if err_n > 0 {
+        summary.point_error_mean_m = Some(err_sum / err_n as f64);
+        summary.point_error_rms_m = Some((err_sq / err_n as f64).sqrt());
+    }
     summary.valid_fraction = if views == 0 {
         0.0
     } else {
@@ -375,10 +432,12 @@ pub fn run_structured_light_scan(
     timings.export = t.elapsed().as_secs_f64();
 
     events(ScanEvent::Stage("evaluate"));
+    let mut hull_overlap = None;
     let ground_truth = sim.as_ref().map(|world| {
         let scene = world.scene();
         let truth = Occupancy::from_fn(grid, |p| scene.contains(&p));
         let overlap = occupancy.iou_and_containment(&truth).map_or((0.0, 0.0), |o| (o.iou, o.containment));
+        hull_overlap = hull.as_ref().and_then(|h| h.occupancy().iou_and_containment(&truth).ok());
         let true_points: Vec<[f32; 3]> = scene
             .sample_surface(CHAMFER_SAMPLES, 1)
             .iter()
@@ -420,7 +479,14 @@ pub fn run_structured_light_scan(
         files: ["model.ply", "model.stl", "model.obj", "cloud.ply", "frames/", "report.json"]
             .map(str::to_owned)
             .to_vec(),
-        visual_hull: None,
+        visual_hull: hull.as_ref().map(|h| VisualHull {
+            iou: hull_overlap.map(|o| o.iou),
+            containment: hull_overlap.map(|o| o.containment),
+            voxels: h.occupancy().count(),
+            volume_m3: h.occupancy().volume_m3(),
+            colour_error: None,
+            reprojection_error: None,
+        }),
         photo: None,
         shadow_carving: None,
         depth_fusion: None,
