@@ -48,6 +48,13 @@ pub struct StructuredLightConfig {
     /// Depth difference to a range-image neighbour that still counts as the same surface, metres.
     #[serde(default = "default_neighbour_tolerance")]
     pub neighbour_tolerance_m: f64,
+    /// Merged cloud: neighbours of the statistical outlier test.
+    #[serde(default = "default_outlier_neighbours")]
+    pub outlier_neighbours: usize,
+    /// Merged cloud: a point is an outlier when its mean distance to its neighbours exceeds the
+    /// cloud's mean of that figure by more than this many standard deviations.
+    #[serde(default = "default_outlier_std_ratio")]
+    pub outlier_std_ratio: f64,
     /// TSDF truncation distance, voxels of the reconstruction grid.
     #[serde(default = "default_truncation_voxels")]
     pub truncation_voxels: f64,
@@ -77,6 +84,12 @@ fn default_min_neighbours() -> u8 {
 fn default_neighbour_tolerance() -> f64 {
     0.002
 }
+fn default_outlier_neighbours() -> usize {
+    16
+}
+fn default_outlier_std_ratio() -> f64 {
+    3.0
+}
 fn default_truncation_voxels() -> f64 {
     3.0
 }
@@ -92,6 +105,8 @@ impl Default for StructuredLightConfig {
             subpixel: true,
             min_neighbours: default_min_neighbours(),
             neighbour_tolerance_m: default_neighbour_tolerance(),
+            outlier_neighbours: default_outlier_neighbours(),
+            outlier_std_ratio: default_outlier_std_ratio(),
             truncation_voxels: default_truncation_voxels(),
             free_below: 0,
         }
@@ -124,6 +139,12 @@ pub(crate) fn validate(config: &RigConfig, bad: &mut dyn FnMut(&str, String)) {
     }
     if !(s.neighbour_tolerance_m.is_finite() && s.neighbour_tolerance_m > 0.0) {
         bad(&key("neighbour_tolerance_m"), "must be a positive number of metres".into());
+    }
+    if !(1..=256).contains(&s.outlier_neighbours) {
+        bad(&key("outlier_neighbours"), format!("must be 1..=256, got {}", s.outlier_neighbours));
+    }
+    if !(s.outlier_std_ratio.is_finite() && s.outlier_std_ratio > 0.0) {
+        bad(&key("outlier_std_ratio"), "must be a positive number".into());
     }
     if !(s.truncation_voxels.is_finite() && s.truncation_voxels > 0.0) {
         bad(&key("truncation_voxels"), "must be a positive number of voxels".into());

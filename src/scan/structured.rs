@@ -4,8 +4,8 @@
 //! (stripe-edge sub-pixel columns by default), triangulated with the calibrated camera and
 //! projector in the object frame (the rig's turntable axis is the object frame's z axis), and the
 //! view's range image is fused into a TSDF over the object-frame grid as it arrives. The merged
-//! point cloud (normals from each range image, colours from the white frame) is written as
-//! `cloud.ply`; the mesh (`model.ply/stl/obj`) is read off the TSDF and its vertices moved onto the
+//! point cloud (normals from each range image, colours from the white frame), cleaned by a
+//! statistical outlier test over its nearest neighbours, is written as `cloud.ply`; the mesh (`model.ply/stl/obj`) is read off the TSDF and its vertices moved onto the
 //! zero crossing. On a simulated rig the report compares the mesh with the scene
 //! (`ground_truth.chamfer_rel` = symmetric Chamfer distance / bounding-box diagonal, voxel IoU).
 //!
@@ -28,8 +28,8 @@ use crate::pipeline::structured_light::{
     ProjectorCoords, ProjectorMap, RangeImage, TriangulateError, TriangulationParams,
 };
 use crate::pipeline::{
-    chamfer_distance, extract_surface, sample_mesh, CarveError, DepthFusionError, FusionParams, Mask, MeshParams,
-    Occupancy, SpaceCarver, Tsdf,
+    chamfer_distance, extract_surface, sample_mesh, CarveError, CloudError, DepthFusionError, FusionParams, Mask,
+    MeshParams, Occupancy, PointCloud, SpaceCarver, Tsdf,
 };
 
 /// Surface samples per side for the Chamfer distance.
@@ -83,6 +83,9 @@ pub enum StructuredLightError {
     /// The TSDF rejected its input.
     #[error("fusing the range images")]
     Fusion(#[source] DepthFusionError),
+    /// The merged point cloud was rejected.
+    #[error("merging the point clouds")]
+    Cloud(#[source] CloudError),
     /// The visual hull of the white frames' silhouettes (for comparison) could not be carved.
     #[error("carving the visual hull")]
     Hull(#[source] CarveError),
@@ -107,10 +110,14 @@ pub struct StructuredLightSummary {
     pub valid_fraction: f64,
     /// Points kept, per view.
     pub points_per_view: Vec<usize>,
-    /// Points in the merged cloud (`cloud.ply`).
+    /// Points in the merged cloud (`cloud.ply`), after outlier removal.
     pub points: usize,
-    /// Points removed by the neighbour test, all views.
+    /// Points removed by the range-image neighbour test, all views.
     pub outliers: usize,
+    /// Points removed from the merged cloud by the statistical outlier test.
+    pub merged_outliers: usize,
+    /// Seconds spent on the merged cloud's outlier removal.
+    pub merge_s: f64,
     /// Mesh vertices moved onto the TSDF's zero crossing.
     pub refined_vertices: usize,
     /// TSDF truncation distance, metres.
@@ -318,7 +325,7 @@ pub fn run_structured_light_scan(
         truncation_m: fusion.truncation_m,
         ..Default::default()
     };
-    let (mut cloud, mut normals, mut colours) = (Vec::new(), Vec::new(), Vec::new());
+    let mut cloud = PointCloud::new();
     let mut map = ProjectorMap::new();
     let mut timings = Timings::default();
     let (mut err_sum, mut err_sq, mut err_n) = (0.0f64, 0.0f64, 0usize);
@@ -370,13 +377,16 @@ pub fn run_structured_light_scan(
             summary.triangulate_s += t.elapsed().as_secs_f64();
             summary.decoded.push(range.decoded);
             summary.outliers += range.outliers;
-            let before = cloud.len();
+            let (mut pts, mut nrm, mut col) = (Vec::new(), Vec::new(), Vec::new());
             for (p, n, c) in range.valid_points() {
-                cloud.push(p);
-                normals.push(n);
-                colours.push(c);
+                pts.push(p);
+                nrm.push(n);
+                col.push(c);
             }
-            summary.points_per_view.push(cloud.len() - before);
+            summary.points_per_view.push(pts.len());
+            let view = PointCloud::from_parts(pts, Some(nrm), Some(col))
+                .map_err(|e| sl_err(StructuredLightError::Cloud(e)))?;
+            cloud.extend(view);
             if let Some(world) = &sim {
                 let (sum, sq, n) = point_errors(&cam, &range, world.scene());
                 err_sum += sum;
@@ -395,7 +405,7 @@ pub fn run_structured_light_scan(
                 hull.add_view(&cam, &mask).map_err(|e| sl_err(StructuredLightError::Hull(e)))?;
                 timings.silhouette += t.elapsed().as_secs_f64();
             }
-            tracing::debug!(position, decoded = range.decoded, points = cloud.len() - before, "view triangulated");
+            tracing::debug!(position, decoded = range.decoded, total_points = cloud.len(), "view triangulated");
             events(ScanEvent::ViewProcessed { position, occupied: stats.near_surface });
             Ok(())
         },
@@ -403,6 +413,11 @@ pub fn run_structured_light_scan(
     timings.capture = capture_s;
     timings.carve = summary.decode_s + summary.triangulate_s + summary.integrate_s;
     let views = summary.decoded.len();
+    let t = Instant::now();
+    summary.merged_outliers = cloud
+        .remove_statistical_outliers(settings.outlier_neighbours, settings.outlier_std_ratio)
+        .map_err(|e| sl_err(StructuredLightError::Cloud(e)))?;
+    summary.merge_s = t.elapsed().as_secs_f64();
     summary.points = cloud.len();
     if err_n > 0 {
         summary.point_error_mean_m = Some(err_sum / err_n as f64);
@@ -428,7 +443,7 @@ pub fn run_structured_light_scan(
     export::write_ply_mesh(&p("model.ply"), &mesh).map_err(ScanError::Export)?;
     export::write_stl(&p("model.stl"), &mesh).map_err(ScanError::Export)?;
     export::write_obj(&p("model.obj"), &mesh).map_err(ScanError::Export)?;
-    export::write_ply_points(&p("cloud.ply"), &cloud, Some(&colours)).map_err(ScanError::Export)?;
+    cloud.write_ply(&p("cloud.ply")).map_err(ScanError::Export)?;
     timings.export = t.elapsed().as_secs_f64();
 
     events(ScanEvent::Stage("evaluate"));
@@ -499,6 +514,5 @@ pub fn run_structured_light_scan(
     }
     let bytes = serde_json::to_vec_pretty(&json).map_err(ScanError::EncodeReport)?;
     write_atomic(&p("report.json"), &bytes).map_err(ScanError::Export)?;
-    drop(normals);
     Ok(report)
 }
