@@ -150,3 +150,61 @@ pub(crate) fn validate(config: &RigConfig, bad: &mut dyn FnMut(&str, String)) {
         bad(&key("truncation_voxels"), "must be a positive number of voxels".into());
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use crate::config::{parse, ConfigError};
+
+    fn shipped() -> String {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/structured-light.toml");
+        std::fs::read_to_string(path).expect("shipped rig")
+    }
+
+    fn problems(text: &str) -> Vec<(String, Option<usize>)> {
+        match parse(text, Path::new("rig.toml")) {
+            Err(ConfigError::Invalid { problems, .. }) => problems.into_iter().map(|p| (p.key, p.line)).collect(),
+            Err(e) => panic!("expected validation problems, got {e}"),
+            Ok(_) => Vec::new(),
+        }
+    }
+
+    #[test]
+    fn the_shipped_rig_reads_its_settings() {
+        let c = parse(&shipped(), Path::new("structured-light.toml")).expect("valid");
+        assert_eq!(c.reconstruction.method.name(), "structured-light");
+        let s = &c.reconstruction.structured_light;
+        assert!(!s.rows && s.subpixel && s.free_below == 12);
+        let Some(crate::config::ProjectorConfig::Sim(p)) = &c.projector else { panic!("projector") };
+        assert_eq!((p.latency_ms, p.frame_period_ms), (30.0, 16.667));
+    }
+
+    #[test]
+    fn bad_values_are_reported_with_key_and_line() {
+        let text = shipped()
+            .replace("latency_ms = 30.0", "latency_ms = -1.0")
+            .replace("min_neighbours = 5", "min_neighbours = 9")
+            .replace("truncation_voxels = 3.0", "truncation_voxels = 0.0");
+        let p = problems(&text);
+        let line_of = |needle: &str| text.lines().position(|l| l.starts_with(needle)).map(|i| i + 1);
+        for (key, needle) in [
+            ("projector.latency_ms", "latency_ms"),
+            ("reconstruction.structured_light.min_neighbours", "min_neighbours"),
+            ("reconstruction.structured_light.truncation_voxels", "truncation_voxels"),
+        ] {
+            assert!(p.contains(&(key.to_owned(), line_of(needle))), "{key} missing from {p:?}");
+        }
+    }
+
+    #[test]
+    fn the_method_needs_a_projector_and_unknown_keys_are_refused() {
+        let text = shipped();
+        let start = text.find("[projector]").expect("projector section");
+        let end = text.find("[sim]").expect("sim section");
+        let without = format!("{}{}", &text[..start], &text[end..]);
+        assert!(problems(&without).iter().any(|(k, _)| k == "projector"), "{:?}", problems(&without));
+        let typo = text.replace("subpixel = true", "sub_pixel = true");
+        assert!(matches!(parse(&typo, Path::new("rig.toml")), Err(ConfigError::Parse { .. })));
+    }
+}
