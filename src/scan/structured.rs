@@ -53,6 +53,16 @@ pub enum StructuredLightError {
         #[source]
         source: DecodeError,
     },
+    /// A position delivered a different number of frames than patterns were shown.
+    #[error("position {position} delivered {found} frames for {expected} patterns")]
+    FrameCount {
+        /// 0-based position.
+        position: usize,
+        /// Patterns shown.
+        expected: usize,
+        /// Frames delivered.
+        found: usize,
+    },
     /// A frame is not the camera's size.
     #[error(
         "frame {index} at position {position} is {found_width}x{found_height} pixels, the camera's {width}x{height}"
@@ -337,6 +347,13 @@ pub fn run_structured_light_scan(
         events,
         |stack: PatternStack, events| {
             let position = stack.position;
+            if stack.frames.len() != used.len() {
+                return Err(sl_err(StructuredLightError::FrameCount {
+                    position,
+                    expected: used.len(),
+                    found: stack.frames.len(),
+                }));
+            }
             let mut greys = Vec::with_capacity(stack.frames.len());
             for (index, f) in stack.frames.iter().enumerate() {
                 if f.image.width() != camera.width || f.image.height() != camera.height {
@@ -515,4 +532,52 @@ pub fn run_structured_light_scan(
     let bytes = serde_json::to_vec_pretty(&json).map_err(ScanError::EncodeReport)?;
     write_atomic(&p("report.json"), &bytes).map_err(ScanError::Export)?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{Intrinsics, Pose};
+
+    fn projector(w: u32, h: u32) -> CameraModel {
+        CameraModel {
+            width: w,
+            height: h,
+            intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 16.0, cy: 8.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+            pose: Pose { rotation: nalgebra::Matrix3::identity(), translation: nalgebra::Vector3::zeros() },
+        }
+    }
+
+    #[test]
+    fn column_only_sequences_skip_the_rows_and_still_decode_columns() {
+        let model = projector(32, 16);
+        let mut settings = StructuredLightConfig::default();
+        let (seq, used) = projected_patterns(&model, &settings).expect("patterns");
+        assert_eq!(used.len(), 2 * 5 + 2, "5 column bit pairs, white, black");
+        settings.rows = true;
+        assert_eq!(projected_patterns(&model, &settings).expect("patterns").1.len(), seq.count());
+        settings.rows = false;
+        settings.subpixel = false;
+        // A camera that sees the projector pixel for pixel: each camera pixel decodes to its column.
+        let greys: Vec<Vec<u8>> = used
+            .iter()
+            .map(|&i| seq.render(i).expect("render").iter().map(|&g| if g > 0 { 220 } else { 20 }).collect())
+            .collect();
+        let mut map = ProjectorMap::new();
+        let coords = decode_stack(&seq, &used, &greys, &model, &settings, 0, &mut map).expect("decode");
+        assert!(coords.row.is_none());
+        for x in 0..32 {
+            assert_eq!(coords.get(x, 5), Some((x as f32 + 0.5, None)));
+        }
+    }
+
+    #[test]
+    fn pixels_without_points_are_free_only_on_the_dark_background() {
+        let range = RangeImage { width: 3, height: 1, depth_m: vec![0.3, 0.0, 0.0], ..Default::default() };
+        let d = fusion_depth(&range, &[200, 5, 60], 12);
+        assert_eq!(d[0], 0.3);
+        assert_eq!(d[1], 0.0, "dark under white light: background, free space");
+        assert!(d[2].is_nan(), "lit but no point (shadow, weak code): unknown");
+        assert!(fusion_depth(&range, &[200, 5, 60], 0)[1].is_nan(), "free_below = 0: never free");
+    }
 }
