@@ -137,12 +137,16 @@ mod tests {
     /// The small simulated box rig with a slow projector (25 ms lag, 60 Hz refresh) and a camera
     /// without a buffer queue, so staleness comes only from the projector.
     fn slow_projector_rig(positions: u32) -> RigConfig {
+        slow_projector_rig_with_buffers(positions, 1)
+    }
+
+    fn slow_projector_rig_with_buffers(positions: u32, buffers: u32) -> RigConfig {
         let mut rig = crate::sim::tests::small_rig("box");
         let Some(ProjectorConfig::Sim(p)) = rig.projector.as_mut() else { panic!("the rig has a projector") };
         p.latency_ms = 25.0;
         p.frame_period_ms = 1000.0 / 60.0;
         let CameraConfig::Sim(c) = &mut rig.camera;
-        c.buffer_depth = 1;
+        c.buffer_depth = buffers;
         rig.scan.positions = positions;
         rig.scan.lights = Vec::new();
         rig
@@ -177,7 +181,15 @@ mod tests {
 
     #[test]
     fn every_frame_is_exposed_after_its_pattern_is_on_screen() {
-        let config = slow_projector_rig(2);
+        for buffers in [1, 3] {
+            check_fresh_frames(buffers);
+        }
+    }
+
+    /// With `buffers` queued camera buffers the frames already queued when a pattern is shown are
+    /// stale and discarded; with one buffer nothing is.
+    fn check_fresh_frames(buffers: u32) {
+        let config = slow_projector_rig_with_buffers(2, buffers);
         let mut rig = build_rig(&config).expect("rig");
         let (white, black) = white_black(&rig);
         let patterns = [white.clone(), black.clone(), white, black];
@@ -197,6 +209,13 @@ mod tests {
             // White frames are bright, black ones only show the ambient light.
             assert!(m[0] > m[1] + 5.0 && m[2] > m[3] + 5.0, "position {}: means {m:?}", s.position);
             assert!((m[0] - m[2]).abs() < 1.0 && (m[1] - m[3]).abs() < 1.0, "means {m:?}");
+        }
+        let stale: u32 = stacks.iter().map(|s| s.stale_discarded).sum();
+        assert_eq!(u64::from(stale), summary.stale_discarded);
+        if buffers == 1 {
+            assert_eq!(stale, 0, "one buffer: every frame is exposed when asked for");
+        } else {
+            assert!(stale >= 2 * 4, "{stale} stale frames for 8 patterns with {buffers} buffers");
         }
         let world = rig.sim.as_ref().expect("sim");
         let state = world.snapshot();
