@@ -3,10 +3,11 @@
 //! simulator's ray caster for a plane and a sphere; the decoded projector coordinates are compared
 //! with the truth, the projection of each camera pixel's surface point into the projector.
 //!
-//! The renderer samples the pattern at the projector pixel a point falls in (no blur), so the
-//! coordinate a camera pixel can show is that pixel's index: `floor(u)` for the continuous
-//! projection `u` (pixel edges at integers) — the "lit pixel" truth. Errors against the continuous
-//! point `u - 0.5` (index coordinates) are printed too; they add the ±0.5 px quantisation.
+//! Coordinates are continuous projector pixels (pixel `x` covers `[x, x + 1)`). The renderer samples
+//! the pattern at the projector pixel a point falls in (no blur), so the coordinate a camera pixel
+//! can show is the centre of that pixel, `floor(u) + 0.5` for the projection `u` — the "lit pixel"
+//! truth. Errors against the projection `u` itself are printed too; they add the ±0.5 px
+//! quantisation of the simulated projector.
 
 use std::time::Duration;
 
@@ -119,8 +120,8 @@ impl Rig {
     }
 }
 
-/// Errors of the decoded values against the lit-pixel truth `floor(u)` and the continuous truth
-/// `u - 0.5`, over pixels that decoded and have a truth; plus the count of truth pixels.
+/// Errors of the decoded values against the lit-pixel truth `floor(u) + 0.5` and the continuous
+/// truth `u`, over pixels that decoded and have a truth; plus the count of truth pixels.
 struct Errors {
     lit: Vec<f64>,
     cont: Vec<f64>,
@@ -135,8 +136,8 @@ impl Errors {
             let u = if axis_row { *v } else { *u };
             seen += 1;
             if !d.is_nan() {
-                lit.push((f64::from(*d) - u.floor()).abs());
-                cont.push((f64::from(*d) - (u - 0.5)).abs());
+                lit.push((f64::from(*d) - (u.floor() + 0.5)).abs());
+                cont.push((f64::from(*d) - u).abs());
             }
         }
         Errors { lit, cont, seen }

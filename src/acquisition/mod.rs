@@ -11,9 +11,11 @@ use std::time::{Duration, Instant};
 
 mod depth;
 mod per_light;
+mod structured;
 
 pub use depth::{capture_fresh_depth, run_depth_scan, DepthView};
 pub use per_light::{run_per_light_scan, PerLightView};
+pub use structured::{run_structured_light_scan, PatternStack};
 
 use crate::config::ScanPlan;
 use crate::devices::{DeviceError, Frame, Rig};

@@ -2,6 +2,7 @@
 //! which reports every problem at once.
 
 pub mod schema;
+pub mod structured_light;
 
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -362,6 +363,7 @@ impl RigConfig {
                 bad("reconstruction.depth_fusion.truncation_voxels", "must be a positive number of voxels".into());
             }
         }
+        structured_light::validate(self, &mut bad);
         if plan.capture_timeout_ms == 0 {
             bad("scan.capture_timeout_ms", "must be at least 1".into());
         }

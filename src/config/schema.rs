@@ -431,6 +431,13 @@ pub struct SimProjectorConfig {
     pub black_level: f64,
     /// `[projector.calibration]`: intrinsics and pose in the rig frame.
     pub calibration: CameraCalibration,
+    /// Time from being handed a pattern to showing it, milliseconds (input lag).
+    #[serde(default)]
+    pub latency_ms: f64,
+    /// Refresh period, milliseconds: a pattern appears at the first refresh after the latency
+    /// (0 = as soon as the latency has passed).
+    #[serde(default)]
+    pub frame_period_ms: f64,
 }
 
 /// `[depth_camera]`, tagged by `kind`.
@@ -545,6 +552,9 @@ pub struct ReconstructionConfig {
     /// `[reconstruction.photo]`: photo-consistency methods only.
     #[serde(default)]
     pub photo: PhotoConfig,
+    /// `[reconstruction.structured_light]` (method `structured-light`).
+    #[serde(default)]
+    pub structured_light: crate::config::structured_light::StructuredLightConfig,
 }
 
 /// `[reconstruction.depth_fusion]`: the TSDF of method `depth-fusion`.
@@ -591,6 +601,8 @@ pub enum Method {
     VoxelColoring,
     /// Generalized space carving by photo-consistency, from the visual hull (any camera placement).
     SpaceCarvingPhoto,
+    /// Gray-code structured light: projector patterns, triangulation, TSDF fusion of the range images.
+    StructuredLight,
 }
 
 impl Method {
@@ -602,6 +614,7 @@ impl Method {
             Method::DepthFusion => "depth-fusion",
             Method::VoxelColoring => "voxel-coloring",
             Method::SpaceCarvingPhoto => "space-carving-photo",
+            Method::StructuredLight => "structured-light",
         }
     }
 

@@ -11,9 +11,11 @@
 //! - [`coloring`]: per-vertex colours from calibrated images.
 //! - [`photo_consistency`], [`voxel_coloring`]: shape and colour from photo-consistency.
 //! - [`export`]: PLY / STL / OBJ writers, written atomically.
+//! - [`cloud`]: point clouds with normals and colours: merging, normals, outlier removal, meshing.
 //! - [`structured_light`]: Gray-code patterns and their per-pixel decoding.
 
 pub mod chamfer;
+pub mod cloud;
 pub mod coloring;
 pub mod depth_fusion;
 pub mod export;
@@ -29,6 +31,7 @@ pub mod structured_light;
 pub mod voxel_coloring;
 
 pub use chamfer::{chamfer_distance, sample_mesh, Chamfer, PointIndex};
+pub use cloud::{mesh_from_cloud, CloudError, CloudMeshParams, CloudMeshStats, KnnIndex, PointCloud};
 pub use coloring::{color_vertices, ColorView};
 pub use depth_fusion::{DepthFusionError, FusionParams, IntegrateStats, Tsdf};
 pub use export::ExportError;

@@ -8,6 +8,7 @@ pub mod photo;
 pub mod reconstruct;
 pub mod report;
 pub mod shadow;
+pub mod structured;
 
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
@@ -90,6 +91,9 @@ pub enum ScanError {
     /// Depth fusion rejected its input.
     #[error("depth fusion failed")]
     DepthFusion(#[source] crate::pipeline::DepthFusionError),
+    /// Structured-light decoding, triangulation or fusion failed.
+    #[error("structured light failed")]
+    StructuredLight(#[source] structured::StructuredLightError),
 }
 
 /// What a running scan tells its caller.
@@ -178,6 +182,9 @@ pub fn run_scan(
     }
     if config.reconstruction.method == crate::config::Method::DepthFusion {
         return depth::run_depth_scan(config, out, cancel, events);
+    }
+    if config.reconstruction.method == crate::config::Method::StructuredLight {
+        return structured::run_structured_light_scan(config, out, cancel, events);
     }
     let started = Instant::now();
     let out = OutputDir::prepare(out)?;

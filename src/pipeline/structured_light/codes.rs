@@ -131,7 +131,7 @@ impl PatternSet {
             PatternSet::Gray(p, prm) => {
                 let mut map = ProjectorMap::new();
                 decode(p, &g, width, height, prm, &mut map)?;
-                ProjectorCoords::from(&map)
+                ProjectorCoords::from_map(&map, true)
             }
             PatternSet::PhaseShift(p, prm) => p.decode(&g, width, height, prm)?,
             PatternSet::SweepingStripe(p, c) => p.decode(&g, width, height, *c)?,

@@ -7,8 +7,9 @@
 //! stripe `i + 1` has colour `(c_i + d_i) mod k` with `d_i` the sequence's symbol + 1, so
 //! neighbouring stripes always differ and every run of `n` consecutive transitions (`n + 1`
 //! stripes) occurs at most once: it names its position. Stripes are `stripe` projector pixels wide;
-//! stripe `i` covers columns `i·stripe .. (i+1)·stripe` and the boundary after it is at column
-//! `(i+1)·stripe - 0.5` (index coordinates: centre of column `x` at `x`).
+//! stripe `i` covers columns `i·stripe .. (i+1)·stripe` and the boundary after it is at
+//! `(i+1)·stripe` (continuous projector coordinates as in [`ProjectorCoords`]: column `x` covers
+//! `[x, x + 1)`).
 //!
 //! **Decoding** (per camera row, rows in parallel):
 //! 1. each pixel's colour is classified by which channels exceed half its brightest channel
@@ -317,7 +318,7 @@ impl DeBruijnStripes {
                 if b == a + 1 {
                     // The edge lies between the end of run j and the start of run j + 1.
                     let cam = (runs[j].1 as f32 + runs[j + 1].0 as f32) / 2.0 - 0.5;
-                    edges.push((cam, b as f32 * sw - 0.5));
+                    edges.push((cam, b as f32 * sw));
                 } else {
                     edges.push((f32::NAN, f32::NAN));
                 }
@@ -385,7 +386,8 @@ mod tests {
         let valid: Vec<usize> = (0..cw).filter(|&x| !out.column[x].is_nan()).collect();
         assert!(valid.len() > cw * 8 / 10, "{} of {cw} decoded", valid.len());
         for &x in &valid {
-            assert!((out.column[x] as f64 - look(x)).abs() < 1.0, "camera {x}: {} vs {}", out.column[x], look(x));
+            let t = look(x) + 0.5; // continuous coordinate of the projector index seen
+            assert!((out.column[x] as f64 - t).abs() < 1.0, "camera {x}: {} vs {t}", out.column[x]);
         }
     }
 }

@@ -1,8 +1,8 @@
 //! N-step phase shift with Gray-code or multi-frequency (temporal) unwrapping.
 //!
-//! Coordinates are projector pixel indices along the coded axis: the centre of projector column
-//! `x` is at `x` (as in the Gray-code [`ProjectorMap`](super::ProjectorMap)), so a decoded column
-//! of 12.3 lies 0.3 pixels right of the centre of column 12.
+//! Decoded coordinates follow [`ProjectorCoords`]: projector pixel `x` covers `[x, x + 1)`, its
+//! centre is `x + 0.5`. The formulas below use the pixel index `x` (fringe phase 0 at the centre of
+//! column 0); the decoder adds the half pixel at the end.
 //!
 //! **Patterns.** Phase image `k` of period `P` (pixels) shows
 //! `I_k(x) = 127.5 + 127.5 cos(2π x / P - 2π k / N)`, `k = 0..N`, rounded to 8 bits. The camera
@@ -450,9 +450,8 @@ impl PhaseShiftPatterns {
                         }
                     }
                     for (o, &ok) in out_row.iter_mut().zip(ok.iter()) {
-                        if !ok || *o < -0.5 || *o > len - 0.5 {
-                            *o = f32::NAN;
-                        }
+                        // Index coordinates to continuous ones (pixel centres at `x + 0.5`).
+                        *o = if !ok || *o < -0.5 || *o > len - 0.5 { f32::NAN } else { *o + 0.5 };
                     }
                 }
             },
@@ -506,7 +505,7 @@ mod tests {
                     continue;
                 }
                 let d = out.column[x] as f64;
-                worst = worst.max((d - t).abs());
+                worst = worst.max((d - (t + 0.5)).abs());
             }
             assert!(worst < 0.15, "{steps} steps: worst column error {worst}");
             assert!(out.row.is_none());
@@ -536,7 +535,7 @@ mod tests {
         let s: Vec<&[u8]> = imgs.iter().map(Vec::as_slice).collect();
         let out = p.decode(&s, 256, 1, &PhaseDecodeParams::default()).expect("decodes");
         for (x, &c) in out.column.iter().enumerate() {
-            assert!((c - x as f32).abs() < 0.1, "column {x} decoded {c}");
+            assert!((c - (x as f32 + 0.5)).abs() < 0.1, "column {x} decoded {c}");
         }
     }
 
@@ -553,8 +552,8 @@ mod tests {
         for y in (0..480).step_by(7) {
             for x in 0..640 {
                 let i = y * 640 + x;
-                assert!((out.column[i] - x as f32).abs() < 0.1, "({x},{y}) column {}", out.column[i]);
-                assert!((rows[i] - y as f32).abs() < 0.1, "({x},{y}) row {}", rows[i]);
+                assert!((out.column[i] - (x as f32 + 0.5)).abs() < 0.1, "({x},{y}) column {}", out.column[i]);
+                assert!((rows[i] - (y as f32 + 0.5)).abs() < 0.1, "({x},{y}) row {}", rows[i]);
             }
         }
     }

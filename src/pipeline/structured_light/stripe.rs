@@ -1,6 +1,6 @@
-//! A single sweeping stripe: frame `k` lights projector columns `k·step .. k·step + width` (index
-//! coordinates, centre of column `x` at `x`), so the stripe's centre in frame `k` is
-//! `k·step + (width - 1) / 2`. Each camera pixel takes the frame of its maximum response and
+//! A single sweeping stripe: frame `k` lights projector columns `k·step .. k·step + width`, so the
+//! stripe's centre in frame `k` is at `k·step + width / 2` (continuous projector coordinates as in
+//! [`ProjectorCoords`]: column `x` covers `[x, x + 1)`). Each camera pixel takes the frame of its maximum response and
 //! refines it to a sub-frame position by the centroid of the response above the pixel's floor (its
 //! minimum over the sweep, i.e. ambient light) over the frames around the peak that the stripe
 //! can overlap; the column is that position mapped through the stripe centre.
@@ -151,8 +151,8 @@ impl SweepingStripe {
         let mut column = vec![f32::NAN; n];
         // Frames on either side of the peak the stripe can still overlap.
         let reach = self.stripe.div_ceil(self.step) as usize;
-        let centre = (self.stripe as f32 - 1.0) / 2.0;
-        let (step, last) = (self.step as f32, self.width as f32 - 0.5);
+        let centre = self.stripe as f32 / 2.0;
+        let (step, last) = (self.step as f32, self.width as f32);
         column.par_chunks_mut(width).enumerate().for_each_init(
             || (vec![0u8; width], vec![255u8; width], vec![0u32; width]),
             |(peak, floor, at), (y, out)| {
@@ -183,7 +183,7 @@ impl SweepingStripe {
                         swk += wgt * j as f32;
                     }
                     let c = swk / sw * step + centre;
-                    if (-0.5..=last).contains(&c) {
+                    if (0.0..=last).contains(&c) {
                         *o = c;
                     }
                 }
@@ -242,7 +242,8 @@ mod tests {
         // Away from the sweep's ends, where the window around the peak is cut off.
         for x in 5..140 {
             let d = out.column[x];
-            assert!((d - 0.4 * x as f32).abs() < 0.3, "camera {x}: {d} vs {}", 0.4 * x as f32);
+            let t = 0.4 * x as f32 + 0.5; // continuous coordinate of projector index 0.4 x
+            assert!((d - t).abs() < 0.3, "camera {x}: {d} vs {t}");
         }
         let dark = vec![vec![7u8; 150]; s.count()];
         let imgs: Vec<&[u8]> = dark.iter().map(Vec::as_slice).collect();

@@ -1,0 +1,1077 @@
+//! Point clouds: points with optional normals and colours, merged over views, cleaned, and meshed.
+//!
+//! A [`PointCloud`] holds points in metres. Its frame is whatever its producer says; the scan flows
+//! build each view's points in the rig frame and turn them into the object frame (fixed to the
+//! turntable top, see [`crate::geometry`]) with [`PointCloud::rig_to_object`] before merging.
+//!
+//! - Nearest neighbours come from [`KnnIndex`], a uniform hash grid with a shell search.
+//! - Normals ([`PointCloud::estimate_normals`]): the eigenvector of the smallest eigenvalue of the
+//!   covariance of the `k` nearest points (PCA), flipped to face the point's viewpoint (the sensor
+//!   that saw it).
+//! - Statistical outlier removal ([`PointCloud::inlier_mask`]): a point whose mean distance to
+//!   its `k` nearest neighbours exceeds the mean of that figure over the cloud by more than `s`
+//!   standard deviations is an outlier.
+//! - Voxel downsampling ([`PointCloud::voxel_downsample`]): one point per occupied cubic cell, the
+//!   mean of its points (normals averaged and renormalised, colours averaged).
+//! - Meshing ([`mesh_from_cloud`]): a signed distance to the oriented points (Hoppe et al. 1992,
+//!   "Surface reconstruction from unorganized points", smoothed as an implicit moving least-squares
+//!   average of the tangent planes of the `k` nearest points) is evaluated on the voxels of a band
+//!   around the points; the sign is propagated to the rest of the grid breadth-first (each voxel takes
+//!   the sign of the nearest band voxel, in 6-connected steps, as Hoppe's nearest-point sign would),
+//!   the grid's outer faces except its floor seeding "outside". The inside voxels form an
+//!   [`Occupancy`] whose surface is extracted by marching tetrahedra ([`extract_surface`], closed and
+//!   consistently oriented); each vertex is then moved onto the zero crossing of the signed distance
+//!   by Newton steps, for sub-voxel accuracy.
+
+use std::collections::{HashMap, VecDeque};
+use std::hash::{BuildHasherDefault, Hasher};
+use std::path::Path;
+
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use rayon::prelude::*;
+
+use super::export::{write_atomic, ExportError};
+use super::mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
+use super::occupancy::Occupancy;
+use crate::geometry::{turntable_rotation, Aabb, VoxelGrid};
+
+/// Errors of point-cloud operations; each names the offending value.
+#[derive(Debug, thiserror::Error)]
+pub enum CloudError {
+    /// An attribute (normals or colours) does not have one entry per point.
+    #[error("{attribute}: {len} values for {points} points")]
+    AttributeLength {
+        /// `"normals"` or `"colours"`.
+        attribute: &'static str,
+        /// Values given.
+        len: usize,
+        /// Points in the cloud.
+        points: usize,
+    },
+    /// A parameter is out of its range.
+    #[error("parameter {name} = {value} is out of range ({expected})")]
+    Parameter {
+        /// The parameter's name.
+        name: &'static str,
+        /// The value given.
+        value: f64,
+        /// What is accepted.
+        expected: &'static str,
+    },
+    /// The operation needs normals and the cloud has none.
+    #[error("the point cloud has no normals (estimate them first)")]
+    NoNormals,
+    /// No point of the cloud lies in the grid, so there is no surface to mesh.
+    #[error("no point of the cloud lies inside the grid")]
+    NoPointsInGrid,
+    /// Surface extraction failed.
+    #[error("surface extraction failed")]
+    Mesh(#[from] MeshError),
+}
+
+/// Points (metres) with optional per-point unit normals and 8-bit RGB colours. Each attribute is
+/// either absent or has exactly one entry per point.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PointCloud {
+    points: Vec<[f32; 3]>,
+    normals: Option<Vec<[f32; 3]>>,
+    colors: Option<Vec<[u8; 3]>>,
+}
+
+impl PointCloud {
+    /// An empty cloud.
+    pub fn new() -> PointCloud {
+        PointCloud::default()
+    }
+
+    /// A cloud of bare points (metres), without normals or colours.
+    pub fn from_points(points: Vec<[f32; 3]>) -> PointCloud {
+        PointCloud { points, normals: None, colors: None }
+    }
+
+    /// A cloud from its parts: points (metres), unit normals, colours; each attribute must have one
+    /// entry per point.
+    pub fn from_parts(
+        points: Vec<[f32; 3]>,
+        normals: Option<Vec<[f32; 3]>>,
+        colors: Option<Vec<[u8; 3]>>,
+    ) -> Result<PointCloud, CloudError> {
+        let n = points.len();
+        if let Some(v) = normals.as_ref().filter(|v| v.len() != n) {
+            return Err(CloudError::AttributeLength { attribute: "normals", len: v.len(), points: n });
+        }
+        if let Some(v) = colors.as_ref().filter(|v| v.len() != n) {
+            return Err(CloudError::AttributeLength { attribute: "colours", len: v.len(), points: n });
+        }
+        Ok(PointCloud { points, normals, colors })
+    }
+
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.points.len()
+    }
+
+    /// True for a cloud without points.
+    pub fn is_empty(&self) -> bool {
+        self.points.is_empty()
+    }
+
+    /// The points, metres.
+    pub fn points(&self) -> &[[f32; 3]] {
+        &self.points
+    }
+
+    /// The unit normals, one per point, if the cloud has them.
+    pub fn normals(&self) -> Option<&[[f32; 3]]> {
+        self.normals.as_deref()
+    }
+
+    /// The colours, one per point, if the cloud has them.
+    pub fn colors(&self) -> Option<&[[u8; 3]]> {
+        self.colors.as_deref()
+    }
+
+    /// Replace the normals (one unit vector per point).
+    pub fn set_normals(&mut self, normals: Vec<[f32; 3]>) -> Result<(), CloudError> {
+        if normals.len() != self.points.len() {
+            return Err(CloudError::AttributeLength { attribute: "normals", len: normals.len(), points: self.len() });
+        }
+        self.normals = Some(normals);
+        Ok(())
+    }
+
+    /// The bounding box of the points (metres, the cloud's frame); `None` for an empty cloud.
+    pub fn bbox(&self) -> Option<Aabb> {
+        let first = self.points.first()?;
+        let (mut min, mut max) = (first.map(f64::from), first.map(f64::from));
+        for p in &self.points {
+            for a in 0..3 {
+                min[a] = min[a].min(f64::from(p[a]));
+                max[a] = max[a].max(f64::from(p[a]));
+            }
+        }
+        Some(Aabb { min, max })
+    }
+
+    /// Append `other`'s points. An attribute survives only if both clouds have it (an empty cloud
+    /// takes `other`'s attributes), so the result never mixes points with and without normals.
+    pub fn extend(&mut self, other: PointCloud) {
+        if self.points.is_empty() {
+            *self = other;
+            return;
+        }
+        if other.points.is_empty() {
+            return;
+        }
+        self.points.extend(other.points);
+        self.normals = match (self.normals.take(), other.normals) {
+            (Some(mut a), Some(b)) => {
+                a.extend(b);
+                Some(a)
+            }
+            _ => None,
+        };
+        self.colors = match (self.colors.take(), other.colors) {
+            (Some(mut a), Some(b)) => {
+                a.extend(b);
+                Some(a)
+            }
+            _ => None,
+        };
+    }
+
+    /// Merge clouds in order (see [`PointCloud::extend`] for attributes).
+    pub fn merge(clouds: impl IntoIterator<Item = PointCloud>) -> PointCloud {
+        let mut out = PointCloud::new();
+        for c in clouds {
+            out.extend(c);
+        }
+        out
+    }
+
+    /// Apply the rigid transform `p -> rotation * p + translation` (metres) to the points, and the
+    /// rotation to the normals. `rotation` must be a rotation matrix.
+    pub fn transform(&mut self, rotation: &Matrix3<f64>, translation: &Vector3<f64>) {
+        let r = rotation.cast::<f32>();
+        let t = translation.cast::<f32>();
+        self.points.par_iter_mut().for_each(|p| {
+            let q = r * Vector3::from(*p) + t;
+            *p = [q.x, q.y, q.z];
+        });
+        if let Some(ns) = self.normals.as_mut() {
+            ns.par_iter_mut().for_each(|n| {
+                let q = r * Vector3::from(*n);
+                *n = [q.x, q.y, q.z];
+            });
+        }
+    }
+
+    /// Turn points from the rig frame into the object frame at turntable angle `table_angle_deg`
+    /// (degrees, counter-clockwise seen from above): `p_obj = Rz(-θ) · p_rig`.
+    pub fn rig_to_object(&mut self, table_angle_deg: f64) {
+        self.transform(&turntable_rotation(-table_angle_deg), &Vector3::zeros());
+    }
+
+    /// Keep the points whose entry in `keep` is true (one entry per point; missing entries drop).
+    pub fn retain_mask(&mut self, keep: &[bool]) {
+        let pick = |n: usize| keep.get(n).copied().unwrap_or(false);
+        fn filter<T: Copy>(v: &mut Vec<T>, pick: &impl Fn(usize) -> bool) {
+            let mut n = 0;
+            v.retain(|_| {
+                n += 1;
+                pick(n - 1)
+            });
+        }
+        filter(&mut self.points, &pick);
+        if let Some(v) = self.normals.as_mut() {
+            filter(v, &pick);
+        }
+        if let Some(v) = self.colors.as_mut() {
+            filter(v, &pick);
+        }
+    }
+
+    /// Estimate a unit normal per point: PCA over the point and its `k - 1` nearest neighbours (`k` in
+    /// 3..=64), the direction of least variance, flipped to face `viewpoint(i)` (metres, the cloud's
+    /// frame: the sensor that saw point `i`). Points without enough neighbours get the unit vector
+    /// towards their viewpoint.
+    pub fn estimate_normals<F>(&mut self, k: usize, viewpoint: F) -> Result<(), CloudError>
+    where
+        F: Fn(usize) -> [f32; 3] + Sync,
+    {
+        check_k(k)?;
+        let index = KnnIndex::new(&self.points);
+        let normals = self
+            .points
+            .par_iter()
+            .enumerate()
+            .map_init(Vec::new, |buf, (i, p)| {
+                index.k_nearest(p, k, buf);
+                let view = (Vector3::from(viewpoint(i)) - Vector3::from(*p)).cast::<f64>();
+                let n = if buf.len() >= 3 { pca_normal(&self.points, buf) } else { None };
+                let n = n.unwrap_or_else(|| view.try_normalize(0.0).unwrap_or(Vector3::z()));
+                let n = if n.dot(&view) < 0.0 { -n } else { n };
+                [n.x as f32, n.y as f32, n.z as f32]
+            })
+            .collect();
+        self.normals = Some(normals);
+        Ok(())
+    }
+
+    /// The mean distance (metres) from each point to its `k` nearest other points (`k` in 3..=64);
+    /// `f32::INFINITY` for a point with no other point.
+    pub fn mean_neighbour_distances(&self, k: usize) -> Result<Vec<f32>, CloudError> {
+        check_k(k)?;
+        let index = KnnIndex::new(&self.points);
+        Ok(self
+            .points
+            .par_iter()
+            .map_init(Vec::new, |buf, p| {
+                index.k_nearest(p, k + 1, buf);
+                // The first neighbour is the point itself (or a duplicate at distance 0).
+                let others = &buf[1.min(buf.len())..];
+                if others.is_empty() {
+                    f32::INFINITY
+                } else {
+                    others.iter().map(|(d2, _)| d2.sqrt()).sum::<f32>() / others.len() as f32
+                }
+            })
+            .collect())
+    }
+
+    /// The statistical inliers: `true` for a point to keep. A point is an outlier when its mean distance
+    /// to its `k` nearest neighbours exceeds `mean + std_ratio * sigma` of that figure over the cloud.
+    pub fn inlier_mask(&self, k: usize, std_ratio: f64) -> Result<Vec<bool>, CloudError> {
+        if !(std_ratio.is_finite() && std_ratio > 0.0) {
+            return Err(CloudError::Parameter { name: "std_ratio", value: std_ratio, expected: "positive, finite" });
+        }
+        let d = self.mean_neighbour_distances(k)?;
+        let finite: Vec<f64> = d.iter().filter(|x| x.is_finite()).map(|&x| f64::from(x)).collect();
+        if finite.is_empty() {
+            return Ok(vec![false; d.len()]);
+        }
+        let mean = finite.iter().sum::<f64>() / finite.len() as f64;
+        let var = finite.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / finite.len() as f64;
+        let limit = mean + std_ratio * var.sqrt();
+        Ok(d.iter().map(|&x| f64::from(x) <= limit).collect())
+    }
+
+    /// Remove statistical outliers (see [`PointCloud::inlier_mask`]); returns how many
+    /// points were removed.
+    pub fn remove_statistical_outliers(&mut self, k: usize, std_ratio: f64) -> Result<usize, CloudError> {
+        let keep = self.inlier_mask(k, std_ratio)?;
+        let before = self.len();
+        self.retain_mask(&keep);
+        Ok(before - self.len())
+    }
+
+    /// One point per occupied cube of edge `voxel_m` metres (cubes aligned to the frame's origin):
+    /// the mean of its points, normals summed and renormalised, colours averaged. Output ordered by
+    /// cube (z, then y, then x), so it does not depend on the input order's cubes.
+    pub fn voxel_downsample(&self, voxel_m: f64) -> Result<PointCloud, CloudError> {
+        if !(voxel_m.is_finite() && voxel_m > 0.0) {
+            return Err(CloudError::Parameter { name: "voxel_m", value: voxel_m, expected: "positive, finite" });
+        }
+        #[derive(Default)]
+        struct Acc {
+            p: [f64; 3],
+            n: [f64; 3],
+            c: [u32; 3],
+            count: u32,
+        }
+        let mut cells: HashMap<[i64; 3], Acc> = HashMap::new();
+        for (i, p) in self.points.iter().enumerate() {
+            if !p.iter().all(|x| x.is_finite()) {
+                continue;
+            }
+            let key = p.map(|x| (f64::from(x) / voxel_m).floor() as i64);
+            let acc = cells.entry(key).or_default();
+            for a in 0..3 {
+                acc.p[a] += f64::from(p[a]);
+                if let Some(ns) = &self.normals {
+                    acc.n[a] += f64::from(ns[i][a]);
+                }
+                if let Some(cs) = &self.colors {
+                    acc.c[a] += u32::from(cs[i][a]);
+                }
+            }
+            acc.count += 1;
+        }
+        let mut cells: Vec<([i64; 3], Acc)> = cells.into_iter().collect();
+        cells.sort_unstable_by_key(|(k, _)| [k[2], k[1], k[0]]);
+        let points = cells.iter().map(|(_, a)| a.p.map(|x| (x / f64::from(a.count)) as f32)).collect();
+        let normals = self.normals.as_ref().map(|_| {
+            cells
+                .iter()
+                .map(|(_, a)| {
+                    let n = Vector3::from(a.n).try_normalize(0.0).unwrap_or(Vector3::z());
+                    [n.x as f32, n.y as f32, n.z as f32]
+                })
+                .collect()
+        });
+        let colors = self
+            .colors
+            .as_ref()
+            .map(|_| cells.iter().map(|(_, a)| a.c.map(|x| ((x + a.count / 2) / a.count).min(255) as u8)).collect());
+        Ok(PointCloud { points, normals, colors })
+    }
+
+    /// Encode as binary little-endian PLY: `x y z` (float, metres), then `nx ny nz` (float) and
+    /// `red green blue` (uchar) when present.
+    pub fn ply_bytes(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(300 + self.points.len() * 27);
+        out.extend_from_slice(b"ply\nformat binary_little_endian 1.0\ncomment scanrig point cloud, metres\n");
+        out.extend_from_slice(format!("element vertex {}\n", self.points.len()).as_bytes());
+        out.extend_from_slice(b"property float x\nproperty float y\nproperty float z\n");
+        if self.normals.is_some() {
+            out.extend_from_slice(b"property float nx\nproperty float ny\nproperty float nz\n");
+        }
+        if self.colors.is_some() {
+            out.extend_from_slice(b"property uchar red\nproperty uchar green\nproperty uchar blue\n");
+        }
+        out.extend_from_slice(b"end_header\n");
+        for (i, p) in self.points.iter().enumerate() {
+            for x in p {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
+            if let Some(ns) = &self.normals {
+                for x in ns[i] {
+                    out.extend_from_slice(&x.to_le_bytes());
+                }
+            }
+            if let Some(cs) = &self.colors {
+                out.extend_from_slice(&cs[i]);
+            }
+        }
+        out
+    }
+
+    /// Write as binary PLY (see [`PointCloud::ply_bytes`]), atomically.
+    pub fn write_ply(&self, path: &Path) -> Result<(), ExportError> {
+        write_atomic(path, &self.ply_bytes())
+    }
+}
+
+fn check_k(k: usize) -> Result<(), CloudError> {
+    if (3..=64).contains(&k) {
+        Ok(())
+    } else {
+        Err(CloudError::Parameter { name: "k", value: k as f64, expected: "3..=64 neighbours" })
+    }
+}
+
+/// The direction of least variance of the points `neighbours` index (unit, unoriented).
+fn pca_normal(points: &[[f32; 3]], neighbours: &[(f32, u32)]) -> Option<Vector3<f64>> {
+    let n = neighbours.len() as f64;
+    let mut mean = Vector3::zeros();
+    for (_, i) in neighbours {
+        mean += Vector3::from(points[*i as usize]).cast::<f64>();
+    }
+    mean /= n;
+    let mut cov = Matrix3::zeros();
+    for (_, i) in neighbours {
+        let d = Vector3::from(points[*i as usize]).cast::<f64>() - mean;
+        cov += d * d.transpose();
+    }
+    let eig = SymmetricEigen::new(cov);
+    let (imin, _) = eig.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
+    let v = eig.eigenvectors.column(imin).into_owned();
+    v.try_normalize(1e-12)
+}
+
+/// A k-nearest-neighbour index over a fixed set of points (metres): a hash of cubic cells, queried by
+/// visiting shells of cells around the query's cell until no unvisited shell can hold a closer point.
+#[derive(Debug, Clone)]
+pub struct KnnIndex {
+    cell_m: f32,
+    /// Cell (packed by [`pack`]) -> range in `order`.
+    cells: HashMap<u64, (u32, u32), BuildHasherDefault<CellHasher>>,
+    /// Point indices grouped by cell.
+    order: Vec<u32>,
+    /// The points, in input order.
+    points: Vec<[f32; 3]>,
+    cell_lo: [i32; 3],
+    cell_hi: [i32; 3],
+}
+
+impl KnnIndex {
+    /// Index `points` with cells of about twice the mean spacing of a surface sample (the bounding
+    /// box diagonal over the square root of the count). Non-finite points are never returned.
+    pub fn new(points: &[[f32; 3]]) -> KnnIndex {
+        let cloud = PointCloud::from_points(points.to_vec());
+        let diag = cloud.bbox().map(|b| b.diagonal()).unwrap_or(0.0) as f32;
+        let n = points.len().max(1) as f32;
+        let cell = if diag.is_finite() && diag > 0.0 { (2.0 * diag / n.sqrt()).max(1e-6) } else { 1.0 };
+        KnnIndex::with_cell(cloud.points, cell)
+    }
+
+    /// Index `points` with cubic cells of `cell_m` metres (positive; enlarged if the points span more
+    /// than 2^20 cells along an axis).
+    pub fn with_cell(points: Vec<[f32; 3]>, cell_m: f32) -> KnnIndex {
+        let mut cell_m = if cell_m.is_finite() && cell_m > 0.0 { cell_m } else { 1.0 };
+        let span = points
+            .iter()
+            .filter(|p| p.iter().all(|x| x.is_finite()))
+            .flat_map(|p| p.iter().map(|x| x.abs()))
+            .fold(0.0f32, f32::max);
+        cell_m = cell_m.max(2.0 * span / (1u32 << 20) as f32);
+        let mut keyed: Vec<([i32; 3], u32)> = points
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| p.iter().all(|x| x.is_finite()))
+            .map(|(i, p)| (cell_key(p, cell_m), i as u32))
+            .collect();
+        keyed.sort_unstable();
+        let mut cells = HashMap::default();
+        let (mut cell_lo, mut cell_hi) = ([i32::MAX; 3], [i32::MIN; 3]);
+        let mut start = 0;
+        while start < keyed.len() {
+            let key = keyed[start].0;
+            let mut end = start;
+            while end < keyed.len() && keyed[end].0 == key {
+                end += 1;
+            }
+            cells.insert(pack(&key), (start as u32, end as u32));
+            for a in 0..3 {
+                cell_lo[a] = cell_lo[a].min(key[a]);
+                cell_hi[a] = cell_hi[a].max(key[a]);
+            }
+            start = end;
+        }
+        let order = keyed.into_iter().map(|(_, i)| i).collect();
+        KnnIndex { cell_m, cells, order, points, cell_lo, cell_hi }
+    }
+
+    /// The indexed points, metres.
+    pub fn points(&self) -> &[[f32; 3]] {
+        &self.points
+    }
+
+    /// The `k` points nearest to `q` as `(squared distance m², index)`, nearest first, into `out`
+    /// (cleared first; fewer than `k` if the index holds fewer finite points).
+    pub fn k_nearest(&self, q: &[f32; 3], k: usize, out: &mut Vec<(f32, u32)>) {
+        self.k_nearest_within(q, k, f32::INFINITY, out);
+    }
+
+    /// As [`KnnIndex::k_nearest`], but only points within `max_m` metres of `q`.
+    pub fn k_nearest_within(&self, q: &[f32; 3], k: usize, max_m: f32, out: &mut Vec<(f32, u32)>) {
+        out.clear();
+        let max2 = max_m * max_m;
+        if k == 0 || self.order.is_empty() || !q.iter().all(|x| x.is_finite()) {
+            return;
+        }
+        let c = cell_key(q, self.cell_m);
+        // Distance from q to the faces of its own cell.
+        let own = (0..3)
+            .map(|a| {
+                let lo = c[a] as f32 * self.cell_m;
+                (q[a] - lo).min(lo + self.cell_m - q[a]).max(0.0)
+            })
+            .fold(f32::INFINITY, f32::min);
+        let reach =
+            (0..3).map(|a| (c[a] - self.cell_lo[a]).abs().max((self.cell_hi[a] - c[a]).abs())).max().unwrap_or(0);
+        // Shells wholly between q and the occupied cells hold nothing.
+        let offset = (0..3).map(|a| (self.cell_lo[a] - c[a]).max(c[a] - self.cell_hi[a]).max(0)).max().unwrap_or(0);
+        if i64::from(offset) * i64::from(offset) * 24 > self.order.len() as i64 {
+            // Far from every point: scanning all points is cheaper than the empty shells.
+            self.brute_k_nearest(q, k, out);
+            out.retain(|e| e.0 <= max2);
+            return;
+        }
+        let mut r = offset;
+        loop {
+            if r > 0 {
+                let floor = (r - 1) as f32 * self.cell_m + own;
+                if floor > max_m || (out.len() >= k && out[k - 1].0 <= floor * floor) {
+                    out.retain(|e| e.0 <= max2);
+                    return;
+                }
+            }
+            if r > reach {
+                out.retain(|e| e.0 <= max2);
+                return;
+            }
+            for dz in -r..=r {
+                for dy in -r..=r {
+                    let on_face = dz.abs() == r || dy.abs() == r;
+                    let step = if on_face || r == 0 { 1 } else { 2 * r };
+                    let mut dx = -r;
+                    while dx <= r {
+                        if let Some(&(s, e)) = self.cells.get(&pack(&[c[0] + dx, c[1] + dy, c[2] + dz])) {
+                            for &i in &self.order[s as usize..e as usize] {
+                                self.offer(q, i, k, out);
+                            }
+                        }
+                        dx += step;
+                    }
+                }
+            }
+            r += 1;
+        }
+    }
+
+    /// Consider point `i` for the `k` nearest to `q` in `out` (sorted by squared distance, then index).
+    #[inline]
+    fn offer(&self, q: &[f32; 3], i: u32, k: usize, out: &mut Vec<(f32, u32)>) {
+        let p = &self.points[i as usize];
+        let d2 = (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2);
+        if out.len() < k || (d2, i) < out[out.len() - 1] {
+            let at = out.partition_point(|e| (e.0, e.1) < (d2, i));
+            out.insert(at, (d2, i));
+            out.truncate(k);
+        }
+    }
+
+    fn brute_k_nearest(&self, q: &[f32; 3], k: usize, out: &mut Vec<(f32, u32)>) {
+        for &i in &self.order {
+            self.offer(q, i, k, out);
+        }
+    }
+}
+
+/// A cell's coordinates packed 21 bits each. Indexed cells lie within +-2^20 of the origin (see
+/// [`KnnIndex::with_cell`]), so their keys are unique; a query cell far outside may alias an indexed
+/// one, which only costs a wasted look-up, since every candidate's distance is computed.
+#[inline]
+fn pack(c: &[i32; 3]) -> u64 {
+    let m = (1u64 << 21) - 1;
+    ((c[0] as u64) & m) | (((c[1] as u64) & m) << 21) | (((c[2] as u64) & m) << 42)
+}
+
+/// A multiplicative hash for packed cell keys (the standard SipHash dominated the search's time).
+#[derive(Debug, Default, Clone, Copy)]
+struct CellHasher(u64);
+
+impl Hasher for CellHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.0 = (self.0.rotate_left(8) ^ u64::from(*b)).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        }
+    }
+    fn write_u64(&mut self, x: u64) {
+        let h = (self.0 ^ x).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        self.0 = h ^ (h >> 29);
+    }
+}
+
+/// Whether voxel `(i, j, k)` lies on a face of the grid that is seeded "outside".
+fn on_seeded_face(grid: &VoxelGrid, params: &CloudMeshParams, i: usize, j: usize, k: usize) -> bool {
+    let d = grid.dims;
+    i == 0 || j == 0 || i + 1 == d[0] || j + 1 == d[1] || k + 1 == d[2] || (k == 0 && !params.floor_is_support)
+}
+
+/// Flip small components of `label` (-1 inside, +1 outside; see [`CloudMeshParams`]); returns the
+/// voxels flipped.
+fn drop_small_components(label: &mut [i8], grid: &VoxelGrid, params: &CloudMeshParams) -> u64 {
+    if params.min_component_fraction <= 0.0 {
+        return 0;
+    }
+    let d = grid.dims;
+    let mut comp = vec![u32::MAX; label.len()];
+    // Per component: sign, size, touches a seeded face.
+    let mut comps: Vec<(i8, u64, bool)> = Vec::new();
+    let mut stack = Vec::new();
+    for start in 0..label.len() {
+        if comp[start] != u32::MAX {
+            continue;
+        }
+        let id = comps.len() as u32;
+        let s = label[start];
+        let (mut size, mut open) = (0u64, false);
+        comp[start] = id;
+        stack.push(start);
+        while let Some(idx) = stack.pop() {
+            size += 1;
+            let (i, j, k) = (idx % d[0], (idx / d[0]) % d[1], idx / (d[0] * d[1]));
+            open |= on_seeded_face(grid, params, i, j, k);
+            let mut nbrs = [usize::MAX; 6];
+            if i > 0 {
+                nbrs[0] = idx - 1;
+            }
+            if i + 1 < d[0] {
+                nbrs[1] = idx + 1;
+            }
+            if j > 0 {
+                nbrs[2] = idx - d[0];
+            }
+            if j + 1 < d[1] {
+                nbrs[3] = idx + d[0];
+            }
+            if k > 0 {
+                nbrs[4] = idx - d[0] * d[1];
+            }
+            if k + 1 < d[2] {
+                nbrs[5] = idx + d[0] * d[1];
+            }
+            for n in nbrs {
+                if n != usize::MAX && comp[n] == u32::MAX && label[n] == s {
+                    comp[n] = id;
+                    stack.push(n);
+                }
+            }
+        }
+        comps.push((s, size, open));
+    }
+    let largest = comps.iter().filter(|c| c.0 < 0).map(|c| c.1).max().unwrap_or(0);
+    let limit = (params.min_component_fraction * largest as f64).ceil() as u64;
+    let flip: Vec<bool> = comps.iter().map(|&(s, size, open)| size < limit && !(s > 0 && open)).collect();
+    let mut flipped = 0;
+    for (l, c) in label.iter_mut().zip(&comp) {
+        if flip[*c as usize] {
+            *l = -*l;
+            flipped += 1;
+        }
+    }
+    flipped
+}
+
+fn dist(a: &[f32; 3], b: &[f32; 3]) -> f32 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+fn cell_key(p: &[f32; 3], cell: f32) -> [i32; 3] {
+    p.map(|x| (x / cell).floor().clamp(i32::MIN as f32 / 4.0, i32::MAX as f32 / 4.0) as i32)
+}
+
+/// Parameters of [`mesh_from_cloud`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CloudMeshParams {
+    /// Oriented points averaged per signed-distance evaluation (3..=64).
+    pub k: usize,
+    /// Width of the Gaussian weight of a tangent plane by its point's distance, metres; `None`: one
+    /// voxel edge.
+    pub kernel_m: Option<f64>,
+    /// Half-width of the band of voxels around the points where the signed distance is evaluated, in
+    /// voxel edges (at least 1).
+    pub band_voxels: f64,
+    /// Whether the grid's floor (its `z`-minimum face) is left unseeded, as for an object standing on
+    /// the turntable top: the floor is then closed by the grid's boundary instead of being "outside".
+    pub floor_is_support: bool,
+    /// Connected inside components (6-connected voxels) smaller than this fraction of the largest are
+    /// dropped (blobs around stray points), and outside components enclosed by the surface that are
+    /// smaller are filled (bubbles); 0 keeps everything.
+    pub min_component_fraction: f64,
+}
+
+impl Default for CloudMeshParams {
+    fn default() -> Self {
+        CloudMeshParams { k: 8, kernel_m: None, band_voxels: 2.0, floor_is_support: true, min_component_fraction: 0.02 }
+    }
+}
+
+/// What [`mesh_from_cloud`] did, for reports.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct CloudMeshStats {
+    /// Voxels where the signed distance was evaluated.
+    pub band_voxels: u64,
+    /// Voxels inside the surface.
+    pub inside_voxels: u64,
+    /// Voxels of small inside or enclosed outside components that were flipped.
+    pub flipped_voxels: u64,
+    /// Mesh vertices moved onto the zero crossing.
+    pub refined_vertices: u64,
+}
+
+/// The signed distance field of an oriented cloud (module docs), metres, positive outside.
+struct SignedDistance<'a> {
+    index: KnnIndex,
+    normals: &'a [[f32; 3]],
+    k: usize,
+    inv_h2: f32,
+    /// Points farther than this (metres) are not consulted.
+    max_m: f32,
+}
+
+impl SignedDistance<'_> {
+    /// Signed distance and its gradient direction (the weighted mean normal) at `p`.
+    fn eval(&self, p: &[f32; 3], buf: &mut Vec<(f32, u32)>) -> Option<(f32, [f32; 3])> {
+        self.index.k_nearest_within(p, self.k, self.max_m, buf);
+        let d0 = buf.first()?.0;
+        let (mut num, mut den, mut g) = (0.0f32, 0.0f32, [0.0f32; 3]);
+        for &(d2, i) in buf.iter() {
+            let w = (-(d2 - d0) * self.inv_h2).exp();
+            let x = &self.index.points[i as usize];
+            let n = &self.normals[i as usize];
+            num += w * ((p[0] - x[0]) * n[0] + (p[1] - x[1]) * n[1] + (p[2] - x[2]) * n[2]);
+            den += w;
+            for a in 0..3 {
+                g[a] += w * n[a];
+            }
+        }
+        (den > 0.0).then(|| (num / den, g.map(|x| x / den)))
+    }
+}
+
+/// A closed, consistently oriented mesh of the surface of an oriented cloud (module docs), on the
+/// voxels of `grid` (metres, the cloud's frame; its floor is the turntable top when
+/// `floor_is_support`). The cloud must have normals pointing out of the object.
+pub fn mesh_from_cloud(
+    cloud: &PointCloud,
+    grid: &VoxelGrid,
+    params: &CloudMeshParams,
+) -> Result<(TriangleMesh, CloudMeshStats), CloudError> {
+    check_k(params.k)?;
+    let normals = cloud.normals().ok_or(CloudError::NoNormals)?;
+    if !(params.band_voxels.is_finite() && params.band_voxels >= 1.0) {
+        return Err(CloudError::Parameter { name: "band_voxels", value: params.band_voxels, expected: ">= 1" });
+    }
+    let h = params.kernel_m.unwrap_or(grid.voxel_size);
+    if !(h.is_finite() && h > 0.0) {
+        return Err(CloudError::Parameter { name: "kernel_m", value: h, expected: "positive, finite" });
+    }
+    let sdf = SignedDistance {
+        index: KnnIndex::new(cloud.points()),
+        normals,
+        k: params.k,
+        inv_h2: (1.0 / (h * h)) as f32,
+        // Band voxels and refined vertices lie within the band (plus a voxel) of their nearest point,
+        // and a point 3 kernel widths farther than the nearest weighs less than e^-9.
+        max_m: ((params.band_voxels + 1.0) * grid.voxel_size + 3.0 * h) as f32,
+    };
+    let vs = grid.voxel_size;
+    let dims = grid.dims;
+    // 1. The band: voxels whose centre is within band_voxels edges of a point.
+    let band_m = params.band_voxels * vs;
+    let reach = params.band_voxels.ceil() as i64;
+    let mut in_band = vec![false; grid.len()];
+    for p in cloud.points() {
+        let f = [0, 1, 2].map(|a| (f64::from(p[a]) - grid.origin[a]) / vs - 0.5);
+        if !f.iter().all(|x| x.is_finite()) {
+            continue;
+        }
+        let base = f.map(|x| x.round() as i64);
+        for dz in -reach..=reach {
+            for dy in -reach..=reach {
+                for dx in -reach..=reach {
+                    let v = [base[0] + dx, base[1] + dy, base[2] + dz];
+                    if (0..3).any(|a| v[a] < 0 || v[a] >= dims[a] as i64) {
+                        continue;
+                    }
+                    let d2: f64 = (0..3).map(|a| ((v[a] as f64 - f[a]) * vs).powi(2)).sum();
+                    if d2 <= band_m * band_m {
+                        in_band[grid.index(v[0] as usize, v[1] as usize, v[2] as usize)] = true;
+                    }
+                }
+            }
+        }
+    }
+    let band: Vec<usize> = (0..grid.len()).filter(|&i| in_band[i]).collect();
+    if band.is_empty() {
+        return Err(CloudError::NoPointsInGrid);
+    }
+    let unravel = |idx: usize| [idx % dims[0], (idx / dims[0]) % dims[1], idx / (dims[0] * dims[1])];
+    // 2. Signs on the band.
+    let band_signs: Vec<i8> = band
+        .par_iter()
+        .map_init(Vec::new, |buf, &idx| {
+            let [i, j, k] = unravel(idx);
+            let c = grid.centre(i, j, k);
+            match sdf.eval(&[c.x as f32, c.y as f32, c.z as f32], buf) {
+                Some((d, _)) if d < 0.0 => -1,
+                _ => 1,
+            }
+        })
+        .collect();
+    // 3. Breadth-first sign propagation from the band and the outer faces (outside).
+    let mut label = vec![0i8; grid.len()];
+    let mut queue = VecDeque::with_capacity(grid.len() / 4);
+    for (&idx, &s) in band.iter().zip(&band_signs) {
+        label[idx] = s;
+        queue.push_back(idx);
+    }
+    for k in 0..dims[2] {
+        for j in 0..dims[1] {
+            for i in 0..dims[0] {
+                let face = i == 0
+                    || j == 0
+                    || i + 1 == dims[0]
+                    || j + 1 == dims[1]
+                    || k + 1 == dims[2]
+                    || (k == 0 && !params.floor_is_support);
+                let idx = grid.index(i, j, k);
+                if face && label[idx] == 0 {
+                    label[idx] = 1;
+                    queue.push_back(idx);
+                }
+            }
+        }
+    }
+    while let Some(idx) = queue.pop_front() {
+        let [i, j, k] = unravel(idx);
+        let s = label[idx];
+        let mut visit = |n: usize| {
+            if label[n] == 0 {
+                label[n] = s;
+                queue.push_back(n);
+            }
+        };
+        if i > 0 {
+            visit(idx - 1);
+        }
+        if i + 1 < dims[0] {
+            visit(idx + 1);
+        }
+        if j > 0 {
+            visit(idx - dims[0]);
+        }
+        if j + 1 < dims[1] {
+            visit(idx + dims[0]);
+        }
+        if k > 0 {
+            visit(idx - dims[0] * dims[1]);
+        }
+        if k + 1 < dims[2] {
+            visit(idx + dims[0] * dims[1]);
+        }
+    }
+    let flipped = drop_small_components(&mut label, grid, params);
+    let occupancy = Occupancy::from_index_fn(*grid, |i, j, k| label[grid.index(i, j, k)] < 0);
+    let inside_voxels = occupancy.count();
+    // 4. Surface, then vertices onto the zero crossing (at most one voxel edge).
+    let mut mesh = extract_surface(&occupancy, &MeshParams { smooth_radius: 0 })?;
+    let limit = vs as f32;
+    let refined: usize = mesh
+        .vertices
+        .par_iter_mut()
+        .map_init(Vec::new, |buf, v| {
+            let start = *v;
+            let mut p = *v;
+            for _ in 0..4 {
+                let Some((d, g)) = sdf.eval(&p, buf) else { break };
+                let g2 = g[0] * g[0] + g[1] * g[1] + g[2] * g[2];
+                if g2 < 0.05 {
+                    break;
+                }
+                p = [0, 1, 2].map(|a| p[a] - d * g[a] / g2);
+                if dist(&p, &start) > limit {
+                    break;
+                }
+            }
+            let shift = dist(&p, &start);
+            if shift > 0.0 && shift <= limit && p.iter().all(|x| x.is_finite()) {
+                *v = p;
+                1
+            } else {
+                0
+            }
+        })
+        .sum();
+    let stats = CloudMeshStats {
+        band_voxels: band.len() as u64,
+        inside_voxels,
+        flipped_voxels: flipped,
+        refined_vertices: refined as u64,
+    };
+    Ok((mesh, stats))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::chamfer_distance;
+
+    /// A small deterministic generator (SplitMix64) for test noise, uniform in [0, 1).
+    struct Rng(u64);
+    impl Rng {
+        fn next(&mut self) -> f32 {
+            self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+        }
+        fn gauss(&mut self) -> f32 {
+            let (u, v) = (self.next().max(1e-7), self.next());
+            (-2.0 * u.ln()).sqrt() * (std::f32::consts::TAU * v).cos()
+        }
+    }
+
+    /// Fibonacci points on a sphere of radius `r` centred at `c`, with radial Gaussian noise `sigma`.
+    fn sphere(n: usize, r: f32, c: [f32; 3], sigma: f32, rng: &mut Rng) -> Vec<[f32; 3]> {
+        let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+        (0..n)
+            .map(|i| {
+                let z = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+                let rho = (1.0 - z * z).sqrt();
+                let phi = golden * i as f32;
+                let rr = r + sigma * rng.gauss();
+                [c[0] + rr * rho * phi.cos(), c[1] + rr * rho * phi.sin(), c[2] + rr * z]
+            })
+            .collect()
+    }
+
+    fn brute_knn(points: &[[f32; 3]], q: &[f32; 3], k: usize) -> Vec<f32> {
+        let mut d: Vec<f32> =
+            points.iter().map(|p| (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).collect();
+        d.sort_by(f32::total_cmp);
+        d.truncate(k);
+        d
+    }
+
+    #[test]
+    fn knn_matches_brute_force() {
+        let mut rng = Rng(3);
+        let pts = sphere(3000, 0.05, [0.0; 3], 0.001, &mut rng);
+        let index = KnnIndex::new(&pts);
+        let mut buf = Vec::new();
+        let queries = sphere(50, 0.049, [0.0; 3], 0.0, &mut rng).into_iter().chain([[0.0; 3], [0.3, -0.2, 0.1]]);
+        for q in queries {
+            index.k_nearest(&q, 12, &mut buf);
+            let got: Vec<f32> = buf.iter().map(|e| e.0).collect();
+            assert_eq!(got, brute_knn(&pts, &q, 12), "{q:?}");
+        }
+        index.k_nearest(&[f32::NAN, 0.0, 0.0], 4, &mut buf);
+        assert!(buf.is_empty());
+        KnnIndex::new(&pts[..2]).k_nearest(&[0.0; 3], 5, &mut buf);
+        assert_eq!(buf.len(), 2);
+    }
+
+    #[test]
+    fn plane_normals_face_the_viewpoint_and_outliers_go() {
+        // A noisy 10 cm square in the plane z = 0.02, plus 20 points scattered well off it.
+        let mut rng = Rng(11);
+        let mut pts = Vec::new();
+        for j in 0..60 {
+            for i in 0..60 {
+                pts.push([i as f32 * 0.0017, j as f32 * 0.0017, 0.02 + 0.0001 * rng.gauss()]);
+            }
+        }
+        let clean = pts.len();
+        for _ in 0..20 {
+            pts.push([0.1 * rng.next(), 0.1 * rng.next(), 0.03 + 0.05 * rng.next()]);
+        }
+        let mut cloud = PointCloud::from_points(pts);
+        let removed = cloud.remove_statistical_outliers(10, 2.0).expect("params");
+        assert!(removed >= 20 && removed < 20 + clean / 50, "{removed}");
+        assert!(cloud.points().iter().all(|p| (p[2] - 0.02).abs() < 0.001));
+        // Seen from below: every normal is -z.
+        cloud.estimate_normals(12, |_| [0.05, 0.05, -1.0]).expect("params");
+        let normals = cloud.normals().expect("estimated");
+        assert!(normals.iter().all(|n| n[2] < -0.99), "{:?}", normals.iter().map(|n| n[2]).fold(0.0, f32::max));
+        assert!(matches!(cloud.estimate_normals(2, |_| [0.0; 3]), Err(CloudError::Parameter { name: "k", .. })));
+        assert!(matches!(
+            cloud.remove_statistical_outliers(8, f64::NAN),
+            Err(CloudError::Parameter { name: "std_ratio", .. })
+        ));
+    }
+
+    #[test]
+    fn merge_transform_downsample_and_ply() {
+        let a = PointCloud::from_parts(vec![[1.0, 0.0, 0.5]], Some(vec![[1.0, 0.0, 0.0]]), Some(vec![[10, 20, 30]]))
+            .expect("lengths");
+        let b = PointCloud::from_parts(vec![[1.0, 0.001, 0.5]], Some(vec![[0.0, 1.0, 0.0]]), Some(vec![[30, 40, 50]]))
+            .expect("lengths");
+        assert!(matches!(
+            PointCloud::from_parts(vec![[0.0; 3]], None, Some(vec![])),
+            Err(CloudError::AttributeLength { attribute: "colours", len: 0, points: 1 })
+        ));
+        let mut m = PointCloud::merge([a.clone(), b]);
+        assert_eq!(m.len(), 2);
+        // Rig -> object at 90 degrees: a rig point on +x was on -y of the object.
+        m.rig_to_object(90.0);
+        let p = m.points()[0];
+        assert!((p[0] - 0.0).abs() < 1e-6 && (p[1] + 1.0).abs() < 1e-6 && p[2] == 0.5, "{p:?}");
+        let n = m.normals().expect("normals")[0];
+        assert!((n[1] + 1.0).abs() < 1e-6, "{n:?}");
+        // One cube of 1 cm holds both: their mean, mean colour, renormalised mean normal.
+        let d = m.voxel_downsample(0.01).expect("voxel");
+        assert_eq!(d.len(), 1);
+        assert_eq!(d.colors().expect("colours")[0], [20, 30, 40]);
+        let n = d.normals().expect("normals")[0];
+        assert!((n[0] - 0.5f32.sqrt()).abs() < 1e-5 && (n[1] + 0.5f32.sqrt()).abs() < 1e-5, "{n:?}");
+        // Attributes survive a merge only if both sides have them.
+        let bare = PointCloud::merge([a, PointCloud::from_points(vec![[0.0; 3]])]);
+        assert!(bare.normals().is_none() && bare.colors().is_none() && bare.len() == 2);
+        // PLY: header names the properties, 27 bytes per point.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("cloud.ply");
+        m.write_ply(&path).expect("write");
+        let bytes = std::fs::read(&path).expect("read");
+        let end = bytes.windows(11).position(|w| w == b"end_header\n").expect("header") + 11;
+        let header = std::str::from_utf8(&bytes[..end]).expect("ascii");
+        assert!(header.contains("element vertex 2") && header.contains("property float nx"));
+        assert!(header.contains("property uchar red"));
+        assert_eq!(bytes.len() - end, 2 * 27);
+        assert_eq!(&bytes[end + 24..end + 27], &[10, 20, 30]);
+    }
+
+    #[test]
+    fn noisy_sphere_with_outliers_meshes_closed_and_within_target() {
+        // A 3 cm sphere standing on the floor (centre z = 3 cm), 0.1 mm noise, 2% outliers.
+        let (r, c) = (0.03f32, [0.0f32, 0.0, 0.03]);
+        let mut rng = Rng(5);
+        let mut pts = sphere(30_000, r, c, 0.0001, &mut rng);
+        for _ in 0..600 {
+            pts.push([0.08 * rng.next() - 0.04, 0.08 * rng.next() - 0.04, 0.07 * rng.next()]);
+        }
+        let mut cloud = PointCloud::from_points(pts);
+        let removed = cloud.remove_statistical_outliers(16, 2.0).expect("params");
+        assert!(removed >= 450, "{removed}");
+        // Viewpoints outside the sphere along each point's radius.
+        let pts = cloud.points().to_vec();
+        cloud.estimate_normals(16, |i| pts[i].map(|x| 3.0 * x)).expect("params");
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.036, -0.036, 0.0], max: [0.036, 0.036, 0.066] }, 60);
+        let (mesh, stats) = mesh_from_cloud(&cloud, &grid, &CloudMeshParams::default()).expect("mesh");
+        assert_eq!(mesh.open_or_misoriented_edges(), 0);
+        assert!(stats.refined_vertices as usize > mesh.vertices.len() * 9 / 10, "{stats:?}");
+        let ball = 4.0 / 3.0 * std::f64::consts::PI * f64::from(r).powi(3);
+        assert!((mesh.signed_volume() / ball - 1.0).abs() < 0.02, "{} vs {ball}", mesh.signed_volume());
+        let truth = sphere(40_000, r, c, 0.0, &mut rng);
+        let samples = crate::pipeline::sample_mesh(&mesh, 40_000, 1);
+        let ch = chamfer_distance(&samples, &truth).expect("non-empty");
+        let diag = 2.0 * f64::from(r) * 3f64.sqrt();
+        assert!(ch.symmetric_m / diag < 0.005, "{ch:?}, relative {}", ch.symmetric_m / diag);
+        // Every vertex on the sphere to well under a voxel (1.2 mm); the Chamfer figure above is
+        // dominated by the spacing of the two samples.
+        let radial: Vec<f32> = mesh.vertices.iter().map(|v| (dist(v, &c) - r).abs()).collect();
+        let mean = radial.iter().sum::<f32>() / radial.len() as f32;
+        assert!(mean < 5e-5 && radial.iter().all(|&e| e < 6e-4), "mean {mean} m");
+        assert!(stats.flipped_voxels > 0, "{stats:?}");
+        // Without normals there is nothing to mesh.
+        let bare = PointCloud::from_points(cloud.points().to_vec());
+        assert!(matches!(mesh_from_cloud(&bare, &grid, &CloudMeshParams::default()), Err(CloudError::NoNormals)));
+    }
+}
