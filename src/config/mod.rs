@@ -293,6 +293,12 @@ impl RigConfig {
         if let Some(ProjectorConfig::Sim(p)) = &self.projector {
             uses_sim = true;
             check_camera(&mut bad, "projector", p.width, p.height, &p.calibration);
+            if !(p.gamma.is_finite() && (0.2..=5.0).contains(&p.gamma)) {
+                bad("projector.gamma", "must be between 0.2 and 5".into());
+            }
+            if !(p.black_level.is_finite() && (0.0..1.0).contains(&p.black_level)) {
+                bad("projector.black_level", "must be in 0..1".into());
+            }
         }
         if let Some(DepthCameraConfig::Sim(d)) = &self.depth_camera {
             uses_sim = true;

@@ -422,6 +422,13 @@ pub struct SimProjectorConfig {
     /// intensity 1.
     #[serde(default = "one")]
     pub intensity: f64,
+    /// Exponent of the input-to-light response: light = `black_level + (1 - black_level) ·
+    /// (v / 255)^gamma` for input grey `v` (1 = linear, real projectors are near 2.2).
+    #[serde(default = "one")]
+    pub gamma: f64,
+    /// Light of a black input, as a fraction 0..1 of full white (projector leakage).
+    #[serde(default)]
+    pub black_level: f64,
     /// `[projector.calibration]`: intrinsics and pose in the rig frame.
     pub calibration: CameraCalibration,
     /// Time from being handed a pattern to showing it, milliseconds (input lag).

@@ -7,6 +7,32 @@ use crate::config::SimProjectorConfig;
 use crate::devices::DeviceError;
 use crate::sim::SimWorld;
 
+/// The light a projector emits for each input grey level: `black_level + (1 - black_level) ·
+/// (v / 255)^gamma`, as a fraction of full white. The simulated projector applies it to every
+/// pattern it shows (rounded back to 8 bits), so patterns meet a real projector's non-linearity.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProjectorResponse {
+    /// Exponent (1 = linear).
+    pub gamma: f64,
+    /// Light of a black input, fraction 0..1 of full white.
+    pub black_level: f64,
+}
+
+impl ProjectorResponse {
+    /// A linear projector with a true black.
+    pub const LINEAR: ProjectorResponse = ProjectorResponse { gamma: 1.0, black_level: 0.0 };
+
+    /// The emitted level (8-bit scale) for each input level.
+    pub fn lut(&self) -> [u8; 256] {
+        let mut lut = [0u8; 256];
+        for (v, o) in lut.iter_mut().enumerate() {
+            let light = self.black_level + (1.0 - self.black_level) * (v as f64 / 255.0).powf(self.gamma);
+            *o = (255.0 * light).round().clamp(0.0, 255.0) as u8;
+        }
+        lut
+    }
+}
+
 /// A simulated projector of `width` x `height` pixels with an input lag and a refresh period: a
 /// pattern handed to [`show`](super::Projector::show) appears at the first refresh (a multiple of
 /// `frame_period` after the projector started) at or after `latency` has passed, and cameras exposing
@@ -19,20 +45,35 @@ pub struct SimProjector {
     latency: Duration,
     frame_period: Duration,
     started: Instant,
+    /// `None` for a linear projector with a true black (patterns pass unchanged).
+    lut: Option<[u8; 256]>,
 }
 
 impl SimProjector {
     /// The projector of `world` (its geometry comes from the same `[projector]` section, its timing
-    /// from `latency_ms` and `frame_period_ms`; negative or non-finite values count as 0).
+    /// from `latency_ms` and `frame_period_ms`, negative or non-finite values counting as 0; its
+    /// response from `gamma` and `black_level`).
     pub fn new(world: SimWorld, config: &SimProjectorConfig) -> Self {
         let ms = |v: f64| if v.is_finite() && v > 0.0 { Duration::from_secs_f64(v / 1000.0) } else { Duration::ZERO };
+        let response = ProjectorResponse { gamma: config.gamma, black_level: config.black_level };
         SimProjector {
-            world,
-            width: config.width,
-            height: config.height,
             latency: ms(config.latency_ms),
             frame_period: ms(config.frame_period_ms),
+            ..Self::with_response(world, config.width, config.height, response)
+        }
+    }
+
+    /// A `width` x `height` pixel projector of `world` with the given response and no latency.
+    pub fn with_response(world: SimWorld, width: u32, height: u32, response: ProjectorResponse) -> Self {
+        let lut = (response != ProjectorResponse::LINEAR).then(|| response.lut());
+        SimProjector {
+            world,
+            width,
+            height,
+            latency: Duration::ZERO,
+            frame_period: Duration::ZERO,
             started: Instant::now(),
+            lut,
         }
     }
 
@@ -56,8 +97,16 @@ impl super::Projector for SimProjector {
     }
 
     fn show(&mut self, pattern: &super::Pattern, _timeout: Duration) -> Result<Instant, DeviceError> {
+        let shown = match &self.lut {
+            None => pattern.clone(),
+            Some(lut) => super::Pattern {
+                width: pattern.width,
+                height: pattern.height,
+                rgb: std::sync::Arc::new(pattern.rgb.iter().map(|&v| lut[v as usize]).collect()),
+            },
+        };
         let at = self.visible_at(Instant::now());
-        self.world.set_pattern_at(Some(pattern.clone()), at).map_err(|e| e.to_device_error("projector", "pattern"))?;
+        self.world.set_pattern_at(Some(shown), at).map_err(|e| e.to_device_error("projector", "pattern"))?;
         Ok(at)
     }
 
