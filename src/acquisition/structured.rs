@@ -43,13 +43,29 @@ pub fn run_structured_light_scan(
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
-    run_then_park(rig, plan, 0, progress, |rig, progress| steps(rig, plan, patterns, stacks, cancel, progress))
+    run_structured_light_scan_held(rig, plan, patterns, Duration::ZERO, stacks, cancel, progress)
+}
+
+/// [`run_structured_light_scan`] keeping each pattern on screen for at least `hold` after the
+/// instant the projector reported it visible (the camera's exposure, a whole number of projector
+/// refreshes) before the next pattern is shown.
+pub fn run_structured_light_scan_held(
+    rig: &mut Rig,
+    plan: &ScanPlan,
+    patterns: &[Pattern],
+    hold: Duration,
+    stacks: &SyncSender<PatternStack>,
+    cancel: &CancelToken,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<AcquisitionSummary, AcquisitionError> {
+    run_then_park(rig, plan, 0, progress, |rig, progress| steps(rig, plan, patterns, hold, stacks, cancel, progress))
 }
 
 fn steps(
     rig: &mut Rig,
     plan: &ScanPlan,
     patterns: &[Pattern],
+    hold: Duration,
     stacks: &SyncSender<PatternStack>,
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
@@ -109,6 +125,12 @@ fn steps(
             let (frame, stale) =
                 capture_fresh(rig, fresh_from, capture_timeout, plan.max_stale_frames, position, &mut sequence)?;
             stack.stale_discarded += stale;
+            // The exposure integrates whole refreshes: the pattern stays up for `hold`.
+            let until = visible_at + hold;
+            let now = Instant::now();
+            if until > now {
+                std::thread::sleep(until - now);
+            }
             stack.frames.push(frame);
             stack.visible_at.push(visible_at);
         }
