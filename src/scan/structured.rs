@@ -1,7 +1,17 @@
 //! The scan flow of method `structured-light`: at each turntable position the projector shows the
-//! Gray/binary stripe sequence (column pairs, row pairs when `rows`, white, black) and the sequencer
-//! captures one fresh frame per pattern; each stack is decoded into projector coordinates
-//! (stripe-edge sub-pixel columns by default), triangulated with the calibrated camera and
+//! sequence of `[reconstruction.structured_light] coding` and the sequencer captures one fresh frame
+//! per pattern (each pattern held for `exposure_ms`, a whole number of projector refreshes, when set):
+//!
+//! - `"gray"` / `"binary"`: the stripe sequence (column pairs, row pairs when `rows`, white, black),
+//!   decoded with the thresholds and stripe-edge sub-pixel columns by default;
+//! - `"phase-shift"`, `"debruijn"`, `"sweep"`: the [`PatternSet`] patterns (RGB) followed by one
+//!   full-white frame (colour of the points, the dark-background free-space test, the visual hull,
+//!   and for De Bruijn the albedo normalisation of the colour frame), decoded by
+//!   [`PatternSet::decode`]. With `gamma_compensation`, the projector response is measured first
+//!   (uniform grey levels at the first position, [`ResponseCurve::fit`]) and the phase-shift fringes
+//!   are pre-distorted with its inverse; the fit is reported under `structured_light.response`.
+//!
+//! Each stack is decoded into projector coordinates, triangulated with the calibrated camera and
 //! projector in the object frame (the rig's turntable axis is the object frame's z axis), and the
 //! view's range image is fused into a TSDF over the object-frame grid as it arrives. The merged
 //! point cloud (normals from each range image, colours from the white frame), cleaned by a
@@ -607,7 +617,7 @@ pub fn run_structured_light_scan(
                 Some(_) => coords
                     .column
                     .iter()
-                    .map(|&c| if c.is_finite() && c >= 0.0 && c < 65535.0 { c as u16 } else { u16::MAX })
+                    .map(|&c| if (0.0..65535.0).contains(&c) { c as u16 } else { u16::MAX })
                     .collect(),
             };
             write_png::<image::Rgb<u8>, u8>(
