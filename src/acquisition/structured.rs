@@ -43,13 +43,29 @@ pub fn run_structured_light_scan(
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
-    run_then_park(rig, plan, 0, progress, |rig, progress| steps(rig, plan, patterns, stacks, cancel, progress))
+    run_structured_light_scan_held(rig, plan, patterns, Duration::ZERO, stacks, cancel, progress)
+}
+
+/// [`run_structured_light_scan`] keeping each pattern on screen for at least `hold` after the
+/// instant the projector reported it visible (the camera's exposure, a whole number of projector
+/// refreshes) before the next pattern is shown.
+pub fn run_structured_light_scan_held(
+    rig: &mut Rig,
+    plan: &ScanPlan,
+    patterns: &[Pattern],
+    hold: Duration,
+    stacks: &SyncSender<PatternStack>,
+    cancel: &CancelToken,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<AcquisitionSummary, AcquisitionError> {
+    run_then_park(rig, plan, 0, progress, |rig, progress| steps(rig, plan, patterns, hold, stacks, cancel, progress))
 }
 
 fn steps(
     rig: &mut Rig,
     plan: &ScanPlan,
     patterns: &[Pattern],
+    hold: Duration,
     stacks: &SyncSender<PatternStack>,
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
@@ -109,6 +125,12 @@ fn steps(
             let (frame, stale) =
                 capture_fresh(rig, fresh_from, capture_timeout, plan.max_stale_frames, position, &mut sequence)?;
             stack.stale_discarded += stale;
+            // The exposure integrates whole refreshes: the pattern stays up for `hold`.
+            let until = visible_at + hold;
+            let now = Instant::now();
+            if until > now {
+                std::thread::sleep(until - now);
+            }
             stack.frames.push(frame);
             stack.visible_at.push(visible_at);
         }
@@ -137,12 +159,16 @@ mod tests {
     /// The small simulated box rig with a slow projector (25 ms lag, 60 Hz refresh) and a camera
     /// without a buffer queue, so staleness comes only from the projector.
     fn slow_projector_rig(positions: u32) -> RigConfig {
+        slow_projector_rig_with_buffers(positions, 1)
+    }
+
+    fn slow_projector_rig_with_buffers(positions: u32, buffers: u32) -> RigConfig {
         let mut rig = crate::sim::tests::small_rig("box");
         let Some(ProjectorConfig::Sim(p)) = rig.projector.as_mut() else { panic!("the rig has a projector") };
         p.latency_ms = 25.0;
         p.frame_period_ms = 1000.0 / 60.0;
         let CameraConfig::Sim(c) = &mut rig.camera;
-        c.buffer_depth = 1;
+        c.buffer_depth = buffers;
         rig.scan.positions = positions;
         rig.scan.lights = Vec::new();
         rig
@@ -177,7 +203,15 @@ mod tests {
 
     #[test]
     fn every_frame_is_exposed_after_its_pattern_is_on_screen() {
-        let config = slow_projector_rig(2);
+        for buffers in [1, 3] {
+            check_fresh_frames(buffers);
+        }
+    }
+
+    /// With `buffers` queued camera buffers the frames already queued when a pattern is shown are
+    /// stale and discarded; with one buffer nothing is.
+    fn check_fresh_frames(buffers: u32) {
+        let config = slow_projector_rig_with_buffers(2, buffers);
         let mut rig = build_rig(&config).expect("rig");
         let (white, black) = white_black(&rig);
         let patterns = [white.clone(), black.clone(), white, black];
@@ -197,6 +231,13 @@ mod tests {
             // White frames are bright, black ones only show the ambient light.
             assert!(m[0] > m[1] + 5.0 && m[2] > m[3] + 5.0, "position {}: means {m:?}", s.position);
             assert!((m[0] - m[2]).abs() < 1.0 && (m[1] - m[3]).abs() < 1.0, "means {m:?}");
+        }
+        let stale: u32 = stacks.iter().map(|s| s.stale_discarded).sum();
+        assert_eq!(u64::from(stale), summary.stale_discarded);
+        if buffers == 1 {
+            assert_eq!(stale, 0, "one buffer: every frame is exposed when asked for");
+        } else {
+            assert!(stale >= 2 * 4, "{stale} stale frames for 8 patterns with {buffers} buffers");
         }
         let world = rig.sim.as_ref().expect("sim");
         let state = world.snapshot();

@@ -18,14 +18,18 @@ use std::time::Instant;
 use super::report::{GroundTruth, Report, Timings, VisualHull};
 use super::{ScanError, ScanEvent};
 use crate::acquisition::{self, CancelToken, PatternStack};
-use crate::config::structured_light::{StripeCoding, StructuredLightConfig};
+use crate::config::structured_light::{exposure_frames, PhaseUnwrapping, StripeCoding, StructuredLightConfig};
 use crate::config::{ProjectorConfig, RigConfig};
 use crate::devices::{build_rig, Pattern};
 use crate::geometry::{CameraModel, VoxelGrid};
 use crate::pipeline::export::{self, write_atomic};
+use crate::pipeline::structured_light::debruijn::{DeBruijnDecodeParams, DeBruijnStripes};
+use crate::pipeline::structured_light::gamma::{calibration_levels, GammaError, ResponseCurve};
+use crate::pipeline::structured_light::phase::{PhaseDecodeParams, PhaseShiftPatterns, Unwrapping};
+use crate::pipeline::structured_light::stripe::SweepingStripe;
 use crate::pipeline::structured_light::{
-    decode, interpolate_stripe_edges, triangulate, Coding, DecodeError, DecodeParams, GrayCodePatterns, PatternError,
-    ProjectorCoords, ProjectorMap, RangeImage, TriangulateError, TriangulationParams,
+    decode, interpolate_stripe_edges, triangulate, CodesError, Coding, DecodeError, DecodeParams, GrayCodePatterns,
+    PatternError, PatternSet, ProjectorCoords, ProjectorMap, RangeImage, TriangulateError, TriangulationParams,
 };
 use crate::pipeline::{
     chamfer_distance, extract_surface, sample_mesh, CarveError, CloudError, DepthFusionError, FusionParams, Mask,
@@ -44,6 +48,24 @@ pub enum StructuredLightError {
     /// The pattern sequence cannot be laid out for the projector.
     #[error("pattern sequence for the projector")]
     Patterns(#[source] PatternError),
+    /// The coding's pattern set cannot be laid out for the projector.
+    #[error("pattern set of the coding for the projector")]
+    Codes(#[source] CodesError),
+    /// A position's frames did not decode with the coding's decoder.
+    #[error("decoding the coded patterns at position {position}")]
+    CodesDecode {
+        /// 0-based position.
+        position: usize,
+        /// Why.
+        #[source]
+        source: CodesError,
+    },
+    /// The grey-level frames of the gamma measurement could not be captured.
+    #[error("capturing the grey levels of the projector response measurement")]
+    ResponseCapture(#[source] acquisition::AcquisitionError),
+    /// The projector response could not be fitted to the grey-level frames.
+    #[error("fitting the projector response (gamma) to the grey-level frames")]
+    Response(#[source] GammaError),
     /// A position's frames did not decode.
     #[error("decoding the patterns at position {position}")]
     Decode {
@@ -52,6 +74,16 @@ pub enum StructuredLightError {
         /// Why.
         #[source]
         source: DecodeError,
+    },
+    /// A position delivered a different number of frames than patterns were shown.
+    #[error("position {position} delivered {found} frames for {expected} patterns")]
+    FrameCount {
+        /// 0-based position.
+        position: usize,
+        /// Patterns shown.
+        expected: usize,
+        /// Frames delivered.
+        found: usize,
     },
     /// A frame is not the camera's size.
     #[error(
@@ -80,6 +112,17 @@ pub enum StructuredLightError {
         #[source]
         source: TriangulateError,
     },
+    /// `exposure_ms` is not a whole number of projector refreshes.
+    #[error(
+        "reconstruction.structured_light.exposure_ms = {exposure_ms} is not a whole multiple of \
+         projector.frame_period_ms = {frame_period_ms}"
+    )]
+    Exposure {
+        /// The exposure asked for, milliseconds.
+        exposure_ms: f64,
+        /// The projector's refresh period, milliseconds.
+        frame_period_ms: f64,
+    },
     /// The TSDF rejected its input.
     #[error("fusing the range images")]
     Fusion(#[source] DepthFusionError),
@@ -91,11 +134,32 @@ pub enum StructuredLightError {
     Hull(#[source] CarveError),
 }
 
+/// The measured projector-camera response, for `report.json`.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct ResponseSummary {
+    /// Fitted exponent of the projector's input-to-light response (1 = linear).
+    pub gamma: f64,
+    /// Median camera level of projected black over the lit pixels (projector black + ambient), 8-bit grey.
+    pub black: f64,
+    /// Median camera level of projected white over the lit pixels, 8-bit grey.
+    pub white: f64,
+    /// Uniform grey levels projected for the fit, 8-bit input levels.
+    pub levels: Vec<u8>,
+    /// Whether the phase-shift fringes were pre-distorted with the fitted response's inverse.
+    pub compensated: bool,
+}
+
 /// What the structured-light pipeline did, for `report.json` (key `structured_light`).
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct StructuredLightSummary {
-    /// `"gray"` or `"binary"`.
+    /// `"gray"`, `"binary"`, `"phase-shift"`, `"debruijn"` or `"sweep"`.
     pub coding: StripeCoding,
+    /// Phase shift only: steps per period, fringe periods (projector pixels) and the unwrapping.
+    pub phase: Option<PhaseSummary>,
+    /// The projector response measured before the scan (`gamma_compensation = true`), else `None`.
+    pub response: Option<ResponseSummary>,
+    /// Each pattern stays on screen this long after it appeared (`exposure_ms`), milliseconds.
+    pub exposure_ms: Option<f64>,
     /// Whether rows were projected (ray-ray triangulation) or only columns (ray-plane).
     pub rows: bool,
     /// Whether the columns were interpolated between stripe edges.
@@ -135,6 +199,98 @@ pub struct StructuredLightSummary {
     pub integrate_s: f64,
 }
 
+/// The phase-shift settings used, for `report.json`.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct PhaseSummary {
+    /// Phase steps per period.
+    pub steps: usize,
+    /// Fringe periods, projector pixels (fine first).
+    pub periods_px: Vec<f64>,
+    /// `"gray"` or `"multi-frequency"`.
+    pub unwrapping: PhaseUnwrapping,
+}
+
+/// The [`PatternSet`] of `settings` for a `width` x `height` projector, or `None` for the Gray/binary
+/// stripe codings (which the flow projects column-only with stripe-edge interpolation itself).
+pub fn pattern_set(
+    width: u32,
+    height: u32,
+    settings: &StructuredLightConfig,
+) -> Result<Option<PatternSet>, CodesError> {
+    let s = settings;
+    Ok(Some(match s.coding {
+        StripeCoding::Gray | StripeCoding::Binary => return Ok(None),
+        StripeCoding::PhaseShift => {
+            let period = s.periods_px.first().copied().unwrap_or(0.0);
+            let unwrapping = match s.unwrapping {
+                PhaseUnwrapping::Gray => Unwrapping::GrayCode,
+                PhaseUnwrapping::MultiFrequency => {
+                    Unwrapping::MultiFrequency { coarser_periods: s.periods_px.iter().skip(1).copied().collect() }
+                }
+            };
+            let p = PhaseShiftPatterns::new(width, height, s.steps, period, unwrapping, s.rows)?;
+            PatternSet::PhaseShift(p, PhaseDecodeParams { min_modulation: s.min_modulation })
+        }
+        StripeCoding::DeBruijn => PatternSet::DeBruijn(
+            DeBruijnStripes::new(width, height, s.debruijn_colours, s.debruijn_window, s.stripe_px)?,
+            DeBruijnDecodeParams::default(),
+        ),
+        StripeCoding::Sweep => PatternSet::SweepingStripe(
+            SweepingStripe::new(width, height, s.stripe_px, s.sweep_step_px)?,
+            s.sweep_min_contrast,
+        ),
+    }))
+}
+
+/// The coded colour frame divided, channel by channel, by the fully lit white frame (both RGB,
+/// same size), scaled so a channel lit as brightly as under white reads 200: the surface's own colour
+/// (albedo) cancels and the stripe colours remain, so a strongly coloured surface (the cup's red
+/// bands have green and blue under half of red) does not turn the stripes' hues. Channels darker
+/// than 8 grey levels under white read 0 (no light to compare).
+fn albedo_normalised(coded: &[u8], white: &[u8]) -> Vec<u8> {
+    coded
+        .iter()
+        .zip(white)
+        .map(|(&c, &w)| if w < 8 { 0 } else { (u32::from(c) * 200 / u32::from(w)).min(255) as u8 })
+        .collect()
+}
+
+/// A uniform RGB projector pattern of grey `level`.
+fn uniform_pattern(level: u8, width: u32, height: u32) -> Pattern {
+    Pattern { width, height, rgb: std::sync::Arc::new(vec![level; 3 * width as usize * height as usize]) }
+}
+
+/// Measures the projector-camera response before the scan: at the plan's first position the
+/// projector shows uniform grey levels ([`calibration_levels`]) through the same sequencer as the
+/// scan (waiting for each to be on screen), and [`ResponseCurve::fit`] fits gamma, black and white
+/// levels to the luma of the pixels lit with at least `min_contrast` grey levels (the object and
+/// any lit background).
+fn measure_response(
+    rig: &mut crate::devices::Rig,
+    plan: &crate::config::ScanPlan,
+    projector: &CameraModel,
+    hold: std::time::Duration,
+    min_contrast: f64,
+    cancel: &CancelToken,
+) -> Result<ResponseSummary, StructuredLightError> {
+    let levels = calibration_levels();
+    let patterns: Vec<Pattern> =
+        levels.iter().map(|&l| uniform_pattern(l, projector.width, projector.height)).collect();
+    let one = crate::config::ScanPlan { positions: 1, ..plan.clone() };
+    let (tx, rx) = std::sync::mpsc::sync_channel(1);
+    acquisition::run_structured_light_scan_held(rig, &one, &patterns, hold, &tx, cancel, &mut |_| {})
+        .map_err(StructuredLightError::ResponseCapture)?;
+    drop(tx);
+    let stack = rx.recv().map_err(|_| {
+        StructuredLightError::ResponseCapture(acquisition::AcquisitionError::PipelineGone { position: 0 })
+    })?;
+    let greys: Vec<Vec<u8>> = stack.frames.iter().map(|f| image::imageops::grayscale(&f.image).into_raw()).collect();
+    let images: Vec<&[u8]> = greys.iter().map(Vec::as_slice).collect();
+    let curve = ResponseCurve::fit(&levels, &images, min_contrast).map_err(StructuredLightError::Response)?;
+    tracing::info!(gamma = curve.gamma, black = curve.black, white = curve.white, "projector response measured");
+    Ok(ResponseSummary { gamma: curve.gamma, black: curve.black, white: curve.white, levels, compensated: false })
+}
+
 /// The projector's calibrated model in the rig frame.
 fn projector_model(config: &RigConfig) -> Option<CameraModel> {
     config.projector.as_ref().map(|p| match p {
@@ -148,9 +304,10 @@ pub fn projected_patterns(
     model: &CameraModel,
     settings: &StructuredLightConfig,
 ) -> Result<(GrayCodePatterns, Vec<usize>), PatternError> {
+    // The other codings do not use this sequence ([`pattern_set`] lays theirs out); Gray stands in.
     let coding = match settings.coding {
-        StripeCoding::Gray => Coding::Gray,
         StripeCoding::Binary => Coding::Binary,
+        _ => Coding::Gray,
     };
     let seq = GrayCodePatterns::with_coding(model.width, model.height, coding)?;
     let cb = 2 * seq.column_bits() as usize;
@@ -279,11 +436,23 @@ pub fn run_structured_light_scan(
     let projector = projector_model(config).ok_or(sl_err(StructuredLightError::NoProjector))?;
     let (seq, used) =
         projected_patterns(&projector, settings).map_err(|e| sl_err(StructuredLightError::Patterns(e)))?;
-    let patterns: Vec<Pattern> = used
-        .iter()
-        .map(|&i| seq.render(i).map(|g| to_pattern(&g, projector.width, projector.height)))
-        .collect::<Result<_, _>>()
-        .map_err(|e| sl_err(StructuredLightError::Patterns(e)))?;
+    let set =
+        pattern_set(projector.width, projector.height, settings).map_err(|e| sl_err(StructuredLightError::Codes(e)))?;
+    let frame_period_ms = match &config.projector {
+        Some(ProjectorConfig::Sim(p)) => p.frame_period_ms,
+        None => 0.0,
+    };
+    // Validation refuses an exposure that is not a whole number of refreshes; this re-check keeps a
+    // hand-built config from reaching the sequencer with one.
+    let hold = match settings.exposure_ms {
+        Some(e) => {
+            let frames = exposure_frames(e, frame_period_ms)
+                .ok_or(sl_err(StructuredLightError::Exposure { exposure_ms: e, frame_period_ms }))?;
+            let hold_ms = if frame_period_ms > 0.0 { f64::from(frames) * frame_period_ms } else { e };
+            std::time::Duration::from_secs_f64(hold_ms / 1000.0)
+        }
+        None => std::time::Duration::ZERO,
+    };
 
     let out_dir = super::OutputDir::prepare(out)?;
     let out = out_dir.path().to_owned();
@@ -295,6 +464,42 @@ pub fn run_structured_light_scan(
     })?;
     let mut rig = build_rig(config).map_err(ScanError::OpenDevices)?;
     let sim = rig.sim.clone();
+    // Gamma: measure the response first, then pre-distort the fringes with its inverse.
+    let mut response = None;
+    let mut lut = None;
+    if settings.gamma_compensation {
+        events(ScanEvent::Stage("projector response"));
+        let mut r = measure_response(&mut rig, &config.scan, &projector, hold, settings.gamma_min_contrast, cancel)
+            .map_err(sl_err)?;
+        if matches!(set, Some(PatternSet::PhaseShift(..))) {
+            lut = Some(ResponseCurve { gamma: r.gamma, black: r.black, white: r.white }.compensation_lut());
+            r.compensated = true;
+        }
+        response = Some(r);
+    }
+    // The projected sequence: the Gray/binary stripes as before; any other coding's patterns (RGB,
+    // through the LUT) followed by one full-white frame, which gives the points their colour, the
+    // dark-background free-space test and the visual hull (a one-shot De Bruijn scan thus takes the
+    // coded frame plus a white frame per position).
+    let white_rgb = uniform_pattern(255, projector.width, projector.height);
+    let patterns: Vec<Pattern> = match &set {
+        None => used
+            .iter()
+            .map(|&i| seq.render(i).map(|g| to_pattern(&g, projector.width, projector.height)))
+            .collect::<Result<_, _>>()
+            .map_err(|e| sl_err(StructuredLightError::Patterns(e)))?,
+        Some(set) => (0..set.count())
+            .map(|i| {
+                set.render_rgb(i, lut.as_ref()).map(|rgb| Pattern {
+                    width: projector.width,
+                    height: projector.height,
+                    rgb: std::sync::Arc::new(rgb),
+                })
+            })
+            .chain(std::iter::once(Ok(white_rgb)))
+            .collect::<Result<_, _>>()
+            .map_err(|e| sl_err(StructuredLightError::Codes(e)))?,
+    };
     let recon = &config.reconstruction;
     let grid = VoxelGrid::from_resolution(&recon.bbox(), recon.resolution);
     let fusion = FusionParams {
@@ -318,8 +523,15 @@ pub fn run_structured_light_scan(
     };
     let mut summary = StructuredLightSummary {
         coding: settings.coding,
+        phase: (settings.coding == StripeCoding::PhaseShift).then(|| PhaseSummary {
+            steps: settings.steps,
+            periods_px: settings.periods_px.clone(),
+            unwrapping: settings.unwrapping,
+        }),
+        response,
+        exposure_ms: settings.exposure_ms,
         rows: settings.rows,
-        subpixel: settings.subpixel,
+        subpixel: settings.subpixel && set.is_none(),
         patterns_per_position: patterns.len(),
         pixels_per_view: camera.width as usize * camera.height as usize,
         truncation_m: fusion.truncation_m,
@@ -333,10 +545,19 @@ pub fn run_structured_light_scan(
     let plan = config.scan.clone();
     let (frames, capture_s) = super::acquire_and_process(
         &mut rig,
-        |rig, tx, progress| acquisition::run_structured_light_scan(rig, &plan, &patterns, tx, cancel, progress),
+        |rig, tx, progress| {
+            acquisition::run_structured_light_scan_held(rig, &plan, &patterns, hold, tx, cancel, progress)
+        },
         events,
         |stack: PatternStack, events| {
             let position = stack.position;
+            if stack.frames.len() != patterns.len() {
+                return Err(sl_err(StructuredLightError::FrameCount {
+                    position,
+                    expected: patterns.len(),
+                    found: stack.frames.len(),
+                }));
+            }
             let mut greys = Vec::with_capacity(stack.frames.len());
             for (index, f) in stack.frames.iter().enumerate() {
                 if f.image.width() != camera.width || f.image.height() != camera.height {
@@ -349,13 +570,46 @@ pub fn run_structured_light_scan(
                         found_height: f.image.height(),
                     }));
                 }
-                greys.push(image::imageops::grayscale(&f.image).into_raw());
+                if set.is_none() {
+                    greys.push(image::imageops::grayscale(&f.image).into_raw());
+                }
             }
-            let white = &stack.frames[stack.frames.len() - 2].image;
-            let white_grey = greys[greys.len() - 2].clone();
             let t = Instant::now();
-            let coords = decode_stack(&seq, &used, &greys, &camera, settings, position, &mut map).map_err(sl_err)?;
+            let (coords, white, white_grey) = match &set {
+                None => {
+                    let coords =
+                        decode_stack(&seq, &used, &greys, &camera, settings, position, &mut map).map_err(sl_err)?;
+                    (coords, &stack.frames[stack.frames.len() - 2].image, greys.swap_remove(greys.len() - 2))
+                }
+                Some(set) => {
+                    let (white, coded) = stack.frames.split_last().ok_or(sl_err(StructuredLightError::FrameCount {
+                        position,
+                        expected: patterns.len(),
+                        found: 0,
+                    }))?;
+                    let normalised;
+                    let captures: Vec<&[u8]> = if let PatternSet::DeBruijn(..) = set {
+                        normalised = albedo_normalised(coded[0].image.as_raw(), white.image.as_raw());
+                        vec![normalised.as_slice()]
+                    } else {
+                        coded.iter().map(|f| f.image.as_raw().as_slice()).collect()
+                    };
+                    let coords = set
+                        .decode(&captures, camera.width as usize, camera.height as usize)
+                        .map_err(|source| sl_err(StructuredLightError::CodesDecode { position, source }))?;
+                    let white_grey = image::imageops::grayscale(&white.image).into_raw();
+                    (coords, &white.image, white_grey)
+                }
+            };
             summary.decode_s += t.elapsed().as_secs_f64();
+            let columns: Vec<u16> = match &set {
+                None => map.columns().to_vec(),
+                Some(_) => coords
+                    .column
+                    .iter()
+                    .map(|&c| if c.is_finite() && c >= 0.0 && c < 65535.0 { c as u16 } else { u16::MAX })
+                    .collect(),
+            };
             write_png::<image::Rgb<u8>, u8>(
                 &frames_dir.join(format!("pos_{position:03}_white.png")),
                 camera.width,
@@ -366,7 +620,7 @@ pub fn run_structured_light_scan(
                 &frames_dir.join(format!("pos_{position:03}_columns.png")),
                 camera.width,
                 camera.height,
-                map.columns().to_vec(),
+                columns,
             )?;
             let t = Instant::now();
             // Both models in the object frame at this view's angle: the points come out there.
@@ -515,4 +769,52 @@ pub fn run_structured_light_scan(
     let bytes = serde_json::to_vec_pretty(&json).map_err(ScanError::EncodeReport)?;
     write_atomic(&p("report.json"), &bytes).map_err(ScanError::Export)?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{Intrinsics, Pose};
+
+    fn projector(w: u32, h: u32) -> CameraModel {
+        CameraModel {
+            width: w,
+            height: h,
+            intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 16.0, cy: 8.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+            pose: Pose { rotation: nalgebra::Matrix3::identity(), translation: nalgebra::Vector3::zeros() },
+        }
+    }
+
+    #[test]
+    fn column_only_sequences_skip_the_rows_and_still_decode_columns() {
+        let model = projector(32, 16);
+        let mut settings = StructuredLightConfig::default();
+        let (seq, used) = projected_patterns(&model, &settings).expect("patterns");
+        assert_eq!(used.len(), 2 * 5 + 2, "5 column bit pairs, white, black");
+        settings.rows = true;
+        assert_eq!(projected_patterns(&model, &settings).expect("patterns").1.len(), seq.count());
+        settings.rows = false;
+        settings.subpixel = false;
+        // A camera that sees the projector pixel for pixel: each camera pixel decodes to its column.
+        let greys: Vec<Vec<u8>> = used
+            .iter()
+            .map(|&i| seq.render(i).expect("render").iter().map(|&g| if g > 0 { 220 } else { 20 }).collect())
+            .collect();
+        let mut map = ProjectorMap::new();
+        let coords = decode_stack(&seq, &used, &greys, &model, &settings, 0, &mut map).expect("decode");
+        assert!(coords.row.is_none());
+        for x in 0..32 {
+            assert_eq!(coords.get(x, 5), Some((x as f32 + 0.5, None)));
+        }
+    }
+
+    #[test]
+    fn pixels_without_points_are_free_only_on_the_dark_background() {
+        let range = RangeImage { width: 3, height: 1, depth_m: vec![0.3, 0.0, 0.0], ..Default::default() };
+        let d = fusion_depth(&range, &[200, 5, 60], 12);
+        assert_eq!(d[0], 0.3);
+        assert_eq!(d[1], 0.0, "dark under white light: background, free space");
+        assert!(d[2].is_nan(), "lit but no point (shadow, weak code): unknown");
+        assert!(fusion_depth(&range, &[200, 5, 60], 0)[1].is_nan(), "free_below = 0: never free");
+    }
 }
