@@ -122,10 +122,10 @@ impl PatternSet {
                 height,
             });
         }
-        if let PatternSet::DeBruijn(p, prm) = self {
-            return Ok(p.decode(captures[0], width, height, prm)?);
-        }
-        let grey: Vec<Vec<u8>> = captures.iter().map(|c| luma(c)).collect();
+        let grey: Vec<Vec<u8>> = match self {
+            PatternSet::DeBruijn(..) => Vec::new(), // decodes the colour capture itself
+            _ => captures.iter().map(|c| luma(c)).collect(),
+        };
         let g: Vec<&[u8]> = grey.iter().map(Vec::as_slice).collect();
         Ok(match self {
             PatternSet::Gray(p, prm) => {
@@ -135,7 +135,52 @@ impl PatternSet {
             }
             PatternSet::PhaseShift(p, prm) => p.decode(&g, width, height, prm)?,
             PatternSet::SweepingStripe(p, c) => p.decode(&g, width, height, *c)?,
-            PatternSet::DeBruijn(..) => unreachable!("decoded above"),
+            PatternSet::DeBruijn(p, prm) => p.decode(captures[0], width, height, prm)?,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Renders every pattern and "captures" it with a camera identical to the projector.
+    fn identity(set: &PatternSet) -> Vec<Vec<u8>> {
+        (0..set.count()).map(|i| set.render_rgb(i, None).expect("in range")).collect()
+    }
+
+    #[test]
+    fn gray_set_round_trips_to_pixel_centres_and_checks_captures() {
+        let set = PatternSet::Gray(GrayCodePatterns::new(40, 24).expect("valid"), DecodeParams::default());
+        assert_eq!(set.resolution(), (40, 24));
+        let caps = identity(&set);
+        let c: Vec<&[u8]> = caps.iter().map(Vec::as_slice).collect();
+        let out = set.decode(&c, 40, 24).expect("decodes");
+        assert_eq!(out.get(13, 7), Some((13.5, Some(7.5))));
+        assert!(matches!(set.decode(&c[1..], 40, 24), Err(CodesError::Captures { .. })));
+        assert!(matches!(set.decode(&c, 41, 24), Err(CodesError::Captures { .. })));
+    }
+
+    #[test]
+    fn phase_and_stripe_sets_round_trip_and_de_bruijn_has_one_pattern() {
+        let phase =
+            PhaseShiftPatterns::new(64, 16, 4, 8.0, super::super::phase::Unwrapping::GrayCode, true).expect("valid");
+        let set = PatternSet::PhaseShift(phase, PhaseDecodeParams::default());
+        let caps = identity(&set);
+        let c: Vec<&[u8]> = caps.iter().map(Vec::as_slice).collect();
+        let out = set.decode(&c, 64, 16).expect("decodes");
+        let (col, row) = out.get(21, 9).expect("valid");
+        assert!((col - 21.5).abs() < 0.05 && (row.expect("rows") - 9.5).abs() < 0.05, "{col} {row:?}");
+
+        let set = PatternSet::SweepingStripe(SweepingStripe::new(64, 4, 3, 1).expect("valid"), 20);
+        let caps = identity(&set);
+        let c: Vec<&[u8]> = caps.iter().map(Vec::as_slice).collect();
+        let out = set.decode(&c, 64, 4).expect("decodes");
+        assert!((out.column[30] - 30.5).abs() < 0.05, "{}", out.column[30]);
+
+        let db = DeBruijnStripes::new(64, 4, 5, 3, 4).expect("valid");
+        let set = PatternSet::DeBruijn(db, DeBruijnDecodeParams::default());
+        assert_eq!(set.count(), 1);
+        assert!(set.render_rgb(1, None).is_err());
     }
 }
