@@ -73,16 +73,18 @@ fn phase_shift_with_gamma_compensation_scans_the_cup_within_half_a_percent() {
     assert!(dir.path().join("out/frames/pos_011_columns.png").is_file());
 }
 
-/// Compensation matters: on the same gamma-2.2 projector, a few views triangulate closer to the
+/// Compensation matters: with 3-step fringes (4 steps cancel the second harmonic that gamma
+/// adds, 3 do not) on the same gamma-2.2 projector, a few views triangulate clearly closer to the
 /// truth with the fitted inverse applied to the fringes than without; a linear projector fits a
 /// gamma near 1.
 #[test]
 #[cfg_attr(debug_assertions, ignore = "heavy: run with --release")]
 fn gamma_compensation_lowers_the_phase_error_and_a_linear_projector_fits_near_one() {
     let few = ("positions = 16", "positions = 3");
-    let (_a, with) = scan(&[few]);
-    let (_b, without) = scan(&[few, ("gamma_compensation = true", "gamma_compensation = false")]);
-    let (_c, linear) = scan(&[few, ("gamma = 2.2", "gamma = 1.0"), ("black_level = 0.02", "black_level = 0.0")]);
+    let three = ("steps = 4", "steps = 3");
+    let (_a, with) = scan(&[few, three]);
+    let (_b, without) = scan(&[few, three, ("gamma_compensation = true", "gamma_compensation = false")]);
+    let (_c, linear) = scan(&[few, three, ("gamma = 2.2", "gamma = 1.0"), ("black_level = 0.02", "black_level = 0.0")]);
     let e = |r: &serde_json::Value| num(r, "structured_light", "point_error_mean_m");
     eprintln!(
         "mean point error: compensated {:.4} mm, uncompensated {:.4} mm; linear projector fits gamma {:.3}",
@@ -91,7 +93,8 @@ fn gamma_compensation_lowers_the_phase_error_and_a_linear_projector_fits_near_on
         num(&linear["structured_light"], "response", "gamma")
     );
     assert!(without["structured_light"]["response"].is_null(), "no measurement without compensation");
-    assert!(e(&with) < e(&without), "compensated {} m vs uncompensated {} m", e(&with), e(&without));
+    // Measured: 0.814 mm compensated, 1.247 mm uncompensated.
+    assert!(e(&with) < 0.8 * e(&without), "compensated {} m vs uncompensated {} m", e(&with), e(&without));
     let g = num(&linear["structured_light"], "response", "gamma");
     assert!((0.7..1.2).contains(&g), "linear projector fitted gamma {g}");
 }
