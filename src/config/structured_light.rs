@@ -280,10 +280,7 @@ pub fn exposure_frames(exposure_ms: f64, frame_period_ms: f64) -> Option<u32> {
 
 /// Checks of the coding's own parameters (`bad` gets the key inside `[reconstruction.structured_light]`).
 fn validate_coding(config: &RigConfig, s: &StructuredLightConfig, bad: &mut dyn FnMut(&str, String)) {
-    let projector_width = match &config.projector {
-        Some(ProjectorConfig::Sim(p)) => Some(p.width),
-        None => None,
-    };
+    let projector_width = config.projector.as_ref().map(|ProjectorConfig::Sim(p)| p.width);
     if s.rows && matches!(s.coding, StripeCoding::DeBruijn | StripeCoding::Sweep) {
         bad("rows", format!("coding {:?} codes columns only: set rows = false", s.coding));
     }

@@ -607,7 +607,7 @@ pub fn run_structured_light_scan(
                 Some(_) => coords
                     .column
                     .iter()
-                    .map(|&c| if c.is_finite() && c >= 0.0 && c < 65535.0 { c as u16 } else { u16::MAX })
+                    .map(|&c| if c.is_finite() && (0.0..65535.0).contains(&c) { c as u16 } else { u16::MAX })
                     .collect(),
             };
             write_png::<image::Rgb<u8>, u8>(
