@@ -1,4 +1,4 @@
-//! Gray-code decoding throughput: the row-wise decoder against a per-pixel reference decoder (each
+//! Gray-code decoding throughput: the band-streaming decoder against a per-pixel reference decoder (each
 //! pixel gathers its 42 samples across the images, as a straightforward per-pixel decoder does),
 //! measured in the same run. Prints one summary line with the ratio; criterion then measures both.
 //!
@@ -71,7 +71,7 @@ fn bench(c: &mut Criterion) {
     assert_eq!(map.columns(), col.as_slice(), "the two decoders disagree");
     let mpx = |d: Duration| n as f64 / d.as_secs_f64() / 1e6;
     println!(
-        "graycode {}x{}: row-wise {:.2} ms ({:.0} Mpx/s), per-pixel reference {:.2} ms ({:.0} Mpx/s), ratio {:.1}x, valid {:.2}%",
+        "graycode {}x{}: band decoder {:.2} ms ({:.0} Mpx/s), per-pixel reference {:.2} ms ({:.0} Mpx/s), ratio {:.1}x, valid {:.2}%",
         cap.width,
         cap.height,
         ours.as_secs_f64() * 1e3,

@@ -10,7 +10,12 @@ use daemon_common::{client, spawn};
 
 #[test]
 fn methods_the_daemon_does_not_run_are_refused_not_substituted() {
-    for rig in ["config/rigs/shadow-carving.toml", "config/rigs/depth-fusion.toml", "config/rigs/laser.toml"] {
+    for rig in [
+        "config/rigs/shadow-carving.toml",
+        "config/rigs/depth-fusion.toml",
+        "config/rigs/laser.toml",
+        "config/rigs/structured-light.toml",
+    ] {
         let dir = tempfile::tempdir().expect("tempdir");
         let d = spawn(&Path::new(env!("CARGO_MANIFEST_DIR")).join(rig), dir.path());
         let c = client(&d);

@@ -12,10 +12,12 @@ use std::time::{Duration, Instant};
 mod depth;
 mod laser;
 mod per_light;
+mod structured;
 
 pub use depth::{capture_fresh_depth, run_depth_scan, DepthView};
 pub use laser::{run_laser_scan, LaserView};
 pub use per_light::{run_per_light_scan, PerLightView};
+pub use structured::{run_structured_light_scan, run_structured_light_scan_held, PatternStack};
 
 use crate::config::ScanPlan;
 use crate::devices::{DeviceError, Frame, Rig};

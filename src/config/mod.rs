@@ -2,6 +2,7 @@
 //! which reports every problem at once.
 
 pub mod schema;
+pub mod structured_light;
 
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -317,6 +318,12 @@ impl RigConfig {
             Some(ProjectorConfig::Sim(p)) => {
                 uses_sim = true;
                 check_camera(&mut bad, "projector", p.width, p.height, &p.calibration);
+                if !(p.gamma.is_finite() && (0.2..=5.0).contains(&p.gamma)) {
+                    bad("projector.gamma", "must be between 0.2 and 5".into());
+                }
+                if !(p.black_level.is_finite() && (0.0..1.0).contains(&p.black_level)) {
+                    bad("projector.black_level", "must be in 0..1".into());
+                }
             }
             Some(ProjectorConfig::Fbdev(p)) => {
                 if let Some(cal) = &p.calibration {
@@ -408,6 +415,7 @@ impl RigConfig {
                 bad(&key, message);
             }
         }
+        structured_light::validate(self, &mut bad);
         if plan.capture_timeout_ms == 0 {
             bad("scan.capture_timeout_ms", "must be at least 1".into());
         }

@@ -501,6 +501,33 @@ fn default_refresh_hz() -> f64 {
     60.0
 }
 
+impl ProjectorConfig {
+    /// The calibrated projector model (inverse pinhole) in the rig frame; `None` for a real
+    /// projector without `[projector.calibration]`.
+    pub fn model(&self) -> Option<CameraModel> {
+        match self {
+            ProjectorConfig::Sim(p) => Some(p.calibration.model(p.width, p.height)),
+            ProjectorConfig::Fbdev(p) => p.calibration.as_ref().map(|c| c.model(p.width, p.height)),
+        }
+    }
+
+    /// Resolution, projector pixels (width, height).
+    pub fn size(&self) -> (u32, u32) {
+        match self {
+            ProjectorConfig::Sim(p) => (p.width, p.height),
+            ProjectorConfig::Fbdev(p) => (p.width, p.height),
+        }
+    }
+
+    /// One refresh period of the projector, milliseconds.
+    pub fn frame_period_ms(&self) -> f64 {
+        match self {
+            ProjectorConfig::Sim(p) => p.frame_period_ms,
+            ProjectorConfig::Fbdev(p) => 1000.0 / p.refresh_hz,
+        }
+    }
+}
+
 /// `[projector] kind = "sim"`: a projector modelled as an inverse pinhole camera.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -513,8 +540,22 @@ pub struct SimProjectorConfig {
     /// intensity 1.
     #[serde(default = "one")]
     pub intensity: f64,
+    /// Exponent of the input-to-light response: light = `black_level + (1 - black_level) ·
+    /// (v / 255)^gamma` for input grey `v` (1 = linear, real projectors are near 2.2).
+    #[serde(default = "one")]
+    pub gamma: f64,
+    /// Light of a black input, as a fraction 0..1 of full white (projector leakage).
+    #[serde(default)]
+    pub black_level: f64,
     /// `[projector.calibration]`: intrinsics and pose in the rig frame.
     pub calibration: CameraCalibration,
+    /// Time from being handed a pattern to showing it, milliseconds (input lag).
+    #[serde(default)]
+    pub latency_ms: f64,
+    /// Refresh period, milliseconds: a pattern appears at the first refresh after the latency
+    /// (0 = as soon as the latency has passed).
+    #[serde(default)]
+    pub frame_period_ms: f64,
 }
 
 /// `[depth_camera]`, tagged by `kind`.
@@ -657,6 +698,9 @@ pub struct ReconstructionConfig {
     /// `[reconstruction.laser]`: method `laser` only.
     #[serde(default)]
     pub laser: LaserScanConfig,
+    /// `[reconstruction.structured_light]` (method `structured-light`).
+    #[serde(default)]
+    pub structured_light: crate::config::structured_light::StructuredLightConfig,
 }
 
 /// `[reconstruction.depth_fusion]`: the TSDF of method `depth-fusion`.
@@ -706,6 +750,8 @@ pub enum Method {
     /// Laser-stripe triangulation over turntable positions with the lasers of
     /// `[reconstruction.laser]`, a point cloud, and a mesh from it.
     Laser,
+    /// Gray-code structured light: projector patterns, triangulation, TSDF fusion of the range images.
+    StructuredLight,
 }
 
 impl Method {
@@ -718,6 +764,7 @@ impl Method {
             Method::VoxelColoring => "voxel-coloring",
             Method::SpaceCarvingPhoto => "space-carving-photo",
             Method::Laser => "laser",
+            Method::StructuredLight => "structured-light",
         }
     }
 

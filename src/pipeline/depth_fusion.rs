@@ -109,8 +109,9 @@ impl Tsdf {
     }
 
     /// Fuse one depth map: `depth_m` is row-major, `camera.width * camera.height` values, metres along
-    /// the optical axis, 0 = no measurement; `camera` is the depth camera in the grid's (object)
-    /// frame, i.e. already turned with `for_turntable_angle`.
+    /// the optical axis, 0 = no measurement, `NaN` = unknown (never carves, even with
+    /// `missing_is_free`); `camera` is the depth camera in the grid's (object) frame, i.e. already
+    /// turned with `for_turntable_angle`.
     pub fn integrate(&mut self, camera: &CameraModel, depth_m: &[f32]) -> Result<IntegrateStats, DepthFusionError> {
         let (w, h) = (camera.width, camera.height);
         if depth_m.len() != w as usize * h as usize {
@@ -143,7 +144,7 @@ impl Tsdf {
                                 near += 1;
                             }
                             (sdf / trunc).clamp(-1.0, 1.0)
-                        } else if missing_is_free {
+                        } else if missing_is_free && d == 0.0 {
                             1.0
                         } else {
                             continue;

@@ -9,6 +9,7 @@ pub mod photo;
 pub mod reconstruct;
 pub mod report;
 pub mod shadow;
+pub mod structured;
 
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
@@ -94,6 +95,9 @@ pub enum ScanError {
     /// Laser stripe triangulation or the point cloud failed.
     #[error("laser scanning failed")]
     Laser(#[source] laser::LaserScanError),
+    /// Structured-light decoding, triangulation or fusion failed.
+    #[error("structured light failed")]
+    StructuredLight(#[source] structured::StructuredLightError),
 }
 
 /// What a running scan tells its caller.
@@ -185,6 +189,9 @@ pub fn run_scan(
     }
     if config.reconstruction.method == crate::config::Method::Laser {
         return laser::run_laser_scan(config, out, None, cancel, events);
+    }
+    if config.reconstruction.method == crate::config::Method::StructuredLight {
+        return structured::run_structured_light_scan(config, out, cancel, events);
     }
     let started = Instant::now();
     let out = OutputDir::prepare(out)?;

@@ -149,10 +149,13 @@ impl Jobs {
         // The daemon's scan job runs the silhouette pipeline (space carving and the photo methods);
         // the methods with their own acquisition run through `scanrig scan` for now. Refuse them
         // rather than run something else under their name.
-        if matches!(config.reconstruction.method, Method::ShadowCarving | Method::DepthFusion) {
+        if matches!(config.reconstruction.method, Method::ShadowCarving | Method::DepthFusion | Method::StructuredLight)
+        {
             return Err(JobError::Invalid {
                 field: "method",
-                problem: "shadow-carving and depth-fusion scans run with `scanrig scan`, not yet in the daemon",
+                problem:
+                    "shadow-carving, depth-fusion and structured-light scans run with `scanrig scan`, not yet in the \
+                          daemon",
             });
         }
         if config.reconstruction.method == Method::Laser {

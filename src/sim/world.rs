@@ -24,6 +24,9 @@ pub struct WorldState {
     pub lasers_on: Vec<bool>,
     /// The projector's current pattern; `None` = blank (black).
     pub pattern: Option<Pattern>,
+    /// A pattern handed to the projector that is not on screen yet, and the instant it appears
+    /// (projector latency and refresh); it replaces `pattern` from then on.
+    pub pending_pattern: Option<(Option<Pattern>, Instant)>,
     /// Number of changes made to the state so far.
     pub changes: u64,
     /// When the state last changed (monotonic).
@@ -51,6 +54,7 @@ impl SimWorld {
             light_levels: vec![0.0; lighting.lights.len()],
             lasers_on: vec![false; lighting.lasers.len()],
             pattern: None,
+            pending_pattern: None,
             changes: 0,
             last_change: Instant::now(),
         };
@@ -108,7 +112,22 @@ impl SimWorld {
 
     /// A copy of the current state.
     pub fn snapshot(&self) -> WorldState {
-        self.lock().clone()
+        self.snapshot_timed().0
+    }
+
+    /// A copy of the state and the instant it holds for: a pending pattern due by then is on screen
+    /// in it, one due later is not. A camera exposing at that instant sees exactly this state.
+    pub fn snapshot_timed(&self) -> (WorldState, Instant) {
+        let mut s = self.lock();
+        let now = Instant::now();
+        if s.pending_pattern.as_ref().is_some_and(|(_, at)| *at <= now) {
+            if let Some((pattern, at)) = s.pending_pattern.take() {
+                s.pattern = pattern;
+                s.changes += 1;
+                s.last_change = at;
+            }
+        }
+        (s.clone(), now)
     }
 
     /// Number of state changes so far.
@@ -152,7 +171,26 @@ impl SimWorld {
     /// Show `pattern` on the projector (`None` = blank). The pattern must match the projector's
     /// resolution and hold `3 · width · height` bytes.
     pub fn set_pattern(&self, pattern: Option<Pattern>) -> Result<(), SimError> {
-        if let Some(p) = &pattern {
+        self.check_pattern(pattern.as_ref())?;
+        self.change(|s| {
+            s.pattern = pattern;
+            s.pending_pattern = None;
+        });
+        Ok(())
+    }
+
+    /// Hand `pattern` to the projector (`None` = blank); it appears on screen at `visible_at`, and
+    /// until then cameras see the previous one. A pattern still pending is replaced.
+    pub fn set_pattern_at(&self, pattern: Option<Pattern>, visible_at: Instant) -> Result<(), SimError> {
+        self.check_pattern(pattern.as_ref())?;
+        // A pattern due by now is on screen: promote it before queueing the next one.
+        let _ = self.snapshot_timed();
+        self.lock().pending_pattern = Some((pattern, visible_at));
+        Ok(())
+    }
+
+    fn check_pattern(&self, pattern: Option<&Pattern>) -> Result<(), SimError> {
+        if let Some(p) = pattern {
             let proj = self.inner.renderer.lighting().projector.as_ref().ok_or(SimError::NoProjector)?;
             let (w, h) = (proj.model.width, proj.model.height);
             if p.width != w || p.height != h || p.rgb.len() != 3 * w as usize * h as usize {
@@ -164,7 +202,6 @@ impl SimWorld {
                 });
             }
         }
-        self.change(|s| s.pattern = pattern);
         Ok(())
     }
 

@@ -56,9 +56,9 @@ impl SimCamera {
     }
 
     fn expose(&mut self) {
-        let state = self.world.snapshot();
-        // Taken after reading the state: the frame shows at least every change made before this.
-        let exposure_start = Instant::now();
+        // The state at the exposure's start: every change made before it, and no pattern that the
+        // projector shows only later.
+        let (state, exposure_start) = self.world.snapshot_timed();
         self.queue.push_back(Exposure { sequence: self.next_sequence, exposure_start, state });
         self.next_sequence += 1;
     }

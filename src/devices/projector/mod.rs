@@ -43,8 +43,9 @@ pub trait Projector: Send + std::fmt::Debug {
     /// Resolution, projector pixels (width, height).
     fn resolution(&self) -> (u32, u32);
 
-    /// Show a pattern; returns once it is on screen, with the instant it became visible (so a
-    /// camera frame exposed after it is known fresh).
+    /// Show a pattern; returns the instant it is (or will be, for a projector with input lag that
+    /// returns at once) on screen, so a camera frame exposed at or after it is known fresh and one
+    /// exposed earlier may still show the previous pattern.
     fn show(&mut self, pattern: &Pattern, timeout: Duration) -> Result<Instant, DeviceError>;
 
     /// Show black. Called at the end of every scan, also after errors.

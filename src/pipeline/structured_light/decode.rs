@@ -1,9 +1,11 @@
 //! Per-pixel projector column and row from a captured pattern sequence.
 //!
-//! Written for memory bandwidth: the images are flat 8-bit buffers, each camera row is decoded on
-//! its own (rayon over bands of rows), one pass per pattern/inverse pair streams the two image rows
-//! once and shifts the bit into a 16-bit code per pixel, so the working set of a row stays in L1 and
-//! nothing is allocated per pixel. The inner loops are branch-free so the compiler vectorises them.
+//! Written for memory bandwidth: the images are flat 8-bit buffers decoded in bands of rows (rayon
+//! over bands). A band's rows are contiguous in every image, so one pass per pattern/inverse pair
+//! streams two long runs the hardware prefetcher follows (row-sized runs switching between 42
+//! images were too short for it), and nothing is allocated per pixel. Per pair the work stays in
+//! 8-bit lanes (bit shifted into byte accumulators, margin kept as a running minimum), branch-free so
+//! the compiler vectorises it; a cache line's worth of pixels that are all invalid is not read again.
 //!
 //! A camera pixel is valid when
 //! - the white and black images differ by more than [`DecodeParams::black_threshold`] (it is lit
@@ -167,28 +169,50 @@ impl ProjectorMap {
 /// each 8-bit image row).
 const SKIP_BLOCK: usize = 64;
 
-/// Decodes one pattern/inverse pair group (columns or rows) of one camera row into `code`,
-/// marking weak bits in `bad`, then turns the codes into indices and `>= limit` into bad.
-#[inline]
-fn decode_axis(pairs: &[(&[u8], &[u8])], coding: Coding, wt: u8, limit: u32, code: &mut [u16], bad: &mut [u8]) {
-    code.fill(0);
-    for &(p, q) in pairs {
-        let blocks = code
+/// Decodes one pattern/inverse pair group (columns or rows) of one camera row into `code` (the
+/// projector index, not yet range-checked), lowering each pixel's margin `m` to its weakest pair.
+///
+/// Everything per pair stays in 8-bit lanes (16 or 32 pixels per vector instruction): the bit is
+/// `p -sat q != 0`, shifted into one of two byte accumulators (`hi` gets the bits above the last
+/// 8), and the margin is `min(m, |p - q| | floor)`: one saturating subtraction each way, an or and a
+/// min. Only the final Gray-to-index step widens to 16 bits, once per pixel and axis.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn decode_axis(
+    pairs: &[(&[u8], &[u8])],
+    coding: Coding,
+    wt: u8,
+    floor: u8,
+    code: &mut [u16],
+    m: &mut [u8],
+    hi: &mut [u8],
+    lo: &mut [u8],
+) {
+    let split = pairs.len().saturating_sub(8);
+    hi.fill(0);
+    lo.fill(0);
+    for (k, &(p, q)) in pairs.iter().enumerate() {
+        let acc: &mut [u8] = if k < split { hi } else { lo };
+        let blocks = acc
             .chunks_mut(SKIP_BLOCK)
-            .zip(bad.chunks_mut(SKIP_BLOCK))
+            .zip(m.chunks_mut(SKIP_BLOCK))
             .zip(p.chunks(SKIP_BLOCK))
             .zip(q.chunks(SKIP_BLOCK));
-        for (((code, bad), p), q) in blocks {
+        for (((acc, m), p), q) in blocks {
             // A block whose pixels are all already invalid is not read: unlit background and
             // dark squares cost no memory traffic for the remaining pairs.
-            if bad.iter().all(|&b| b != 0) {
+            if m.iter().fold(0u8, |a, &b| a.max(b)) < wt {
                 continue;
             }
-            for (((c, b), &p), &q) in code.iter_mut().zip(bad.iter_mut()).zip(p).zip(q) {
-                *c = (*c << 1) | u16::from(p > q);
-                *b |= u8::from(p.abs_diff(q) < wt);
+            for (((a, m), &p), &q) in acc.iter_mut().zip(m.iter_mut()).zip(p).zip(q) {
+                let (d1, d2) = (p.saturating_sub(q), q.saturating_sub(p));
+                *a = a.wrapping_add(*a) | u8::from(d1 != 0);
+                *m = (*m).min(d1 | d2 | floor);
             }
         }
+    }
+    for ((c, &h), &l) in code.iter_mut().zip(hi.iter()).zip(lo.iter()) {
+        *c = (u16::from(h) << 8) | u16::from(l);
     }
     if coding == Coding::Gray {
         for c in code.iter_mut() {
@@ -200,9 +224,58 @@ fn decode_axis(pairs: &[(&[u8], &[u8])], coding: Coding, wt: u8, limit: u32, cod
             *c = g;
         }
     }
-    for (c, b) in code.iter().zip(bad.iter_mut()) {
-        *b |= u8::from(u32::from(*c) >= limit);
+}
+
+/// What every row of one [`decode`] call shares.
+struct RowJob<'a> {
+    images: &'a [&'a [u8]],
+    white: &'a [u8],
+    black: &'a [u8],
+    cb: usize,
+    rb: usize,
+    coding: Coding,
+    pw: u32,
+    ph: u32,
+    bt: u8,
+    wt: u8,
+    floor: u8,
+}
+
+/// One row's outputs and a worker's scratch buffers (each `width` long).
+struct RowBuffers<'b, 'a> {
+    col: &'b mut [u16],
+    row: &'b mut [u16],
+    m: &'b mut [u8],
+    hi: &'b mut [u8],
+    lo: &'b mut [u8],
+    pairs: &'b mut Vec<(&'a [u8], &'a [u8])>,
+}
+
+/// Decodes the camera row starting at pixel `off` into `b.col` and `b.row`; returns its valid
+/// pixels.
+#[inline(always)]
+fn decode_row<'a>(job: &RowJob<'a>, off: usize, b: RowBuffers<'_, 'a>) -> usize {
+    let RowBuffers { col, row, m, hi, lo, pairs } = b;
+    let span = off..off + col.len();
+    let (images, wt, floor) = (job.images, job.wt, job.floor);
+    for ((m, &w), &k) in m.iter_mut().zip(&job.white[span.clone()]).zip(&job.black[span.clone()]) {
+        *m = if w.abs_diff(k) > job.bt { 255 } else { 0 };
     }
+    pairs.clear();
+    pairs.extend((0..job.cb).map(|k| (&images[2 * k][span.clone()], &images[2 * k + 1][span.clone()])));
+    decode_axis(pairs, job.coding, wt, floor, col, m, hi, lo);
+    pairs.clear();
+    pairs.extend((job.cb..job.cb + job.rb).map(|k| (&images[2 * k][span.clone()], &images[2 * k + 1][span.clone()])));
+    decode_axis(pairs, job.coding, wt, floor, row, m, hi, lo);
+    let mut valid = 0;
+    for ((c, r), &m) in col.iter_mut().zip(row.iter_mut()).zip(m.iter()) {
+        let ok = m >= wt && u32::from(*c) < job.pw && u32::from(*r) < job.ph;
+        let keep = u16::from(ok).wrapping_neg(); // 0xffff keeps, 0 drops
+        *c = (*c & keep) | !keep;
+        *r = (*r & keep) | !keep;
+        valid += usize::from(ok);
+    }
+    valid
 }
 
 /// Decodes the capture `images` (the sequence of `patterns`, each a `width * height` 8-bit grey
@@ -242,39 +315,29 @@ pub fn decode(
     let (pw, ph) = (patterns.width(), patterns.height());
     let DecodeParams { black_threshold: bt, white_threshold: wt } = *params;
 
+    // A pixel's margin `m` starts at 255 when it is lit (`|white - black| > bt`) and 0 when not,
+    // then drops to its weakest pair's `|pattern - inverse|`; it is valid when `m >= max(wt, 1)`.
+    // With `wt = 0` every pair passes: `floor = 1` keeps lit pixels' margins at 1 or more.
+    let floor = u8::from(wt == 0);
+    let wt = wt.max(1);
+    let job = RowJob { images, white, black, cb, rb, coding, pw, ph, bt, wt, floor };
     // Bands of rows keep rayon's overhead negligible against the per-row work.
-    const BAND: usize = 8;
+    const BAND: usize = 32;
     let valid = out
         .column
         .par_chunks_mut(width * BAND)
         .zip(out.row.par_chunks_mut(width * BAND))
         .enumerate()
         .map_init(
-            || (vec![0u8; width], Vec::with_capacity(cb.max(rb))),
-            |(bad, pairs), (band, (cols, rows))| {
-                let mut valid = 0usize;
-                for (i, (col, row)) in cols.chunks_exact_mut(width).zip(rows.chunks_exact_mut(width)).enumerate() {
-                    let off = (band * BAND + i) * width;
-                    let span = off..off + width;
-                    for ((b, &w), &k) in bad.iter_mut().zip(&white[span.clone()]).zip(&black[span.clone()]) {
-                        *b = u8::from(w.abs_diff(k) <= bt);
-                    }
-                    pairs.clear();
-                    pairs.extend((0..cb).map(|k| (&images[2 * k][span.clone()], &images[2 * k + 1][span.clone()])));
-                    decode_axis(pairs, coding, wt, pw, col, bad);
-                    pairs.clear();
-                    pairs.extend(
-                        (cb..cb + rb).map(|k| (&images[2 * k][span.clone()], &images[2 * k + 1][span.clone()])),
-                    );
-                    decode_axis(pairs, coding, wt, ph, row, bad);
-                    for ((c, r), &b) in col.iter_mut().zip(row.iter_mut()).zip(bad.iter()) {
-                        let keep = u16::from(b == 0).wrapping_neg(); // 0xffff keeps, 0 drops
-                        *c = (*c & keep) | !keep;
-                        *r = (*r & keep) | !keep;
-                        valid += usize::from(b == 0);
-                    }
-                }
-                valid
+            || (vec![0u8; 3 * width * BAND], Vec::with_capacity(cb.max(rb))),
+            |(scratch, pairs), (band, (col, row))| {
+                // The band's rows are contiguous in every image, so each pass streams one
+                // `width * BAND` run per image: long enough for the hardware prefetcher.
+                let n = col.len();
+                let (m, rest) = scratch.split_at_mut(n);
+                let (hi, lo) = rest.split_at_mut(n);
+                let lo = &mut lo[..n];
+                decode_row(&job, band * BAND * width, RowBuffers { col, row, m, hi: &mut hi[..n], lo, pairs })
             },
         )
         .sum();

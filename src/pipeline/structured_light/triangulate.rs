@@ -1,0 +1,460 @@
+//! Triangulation of decoded structured light into a range image: one 3-D point per camera pixel
+//! with a projector coordinate, with its colour, a normal from its range-image neighbours, and an
+//! outlier test against those neighbours.
+//!
+//! Frames: the camera and the projector are [`CameraModel`]s posed in one reference frame (the
+//! object frame at the view's turntable angle, from `for_turntable_angle`, or the rig frame); the
+//! points and normals come out in that frame, metres. Both models include radial distortion.
+//!
+//! - Camera ray: the undistorted ray through the pixel centre `(x + 0.5, y + 0.5)` from the camera
+//!   centre.
+//! - Column only: the surface point is where the camera ray meets the set of points the projector
+//!   maps to column `c` (a plane through the projector centre without distortion, a slightly curved
+//!   surface with it). It is found exactly: start from the distortion-free column plane, then a few
+//!   secant steps along the ray on the projector's distorted column `u(t) - c = 0`; a point whose
+//!   residual stays above 0.01 projector pixel is rejected.
+//! - Column and row: the midpoint of the closest points of the camera ray and the projector ray
+//!   through `(c, r)` (undistorted through the projector's model), rejected when the rays pass further
+//!   than `max_ray_gap_m` apart.
+//!
+//! Projector coordinates are continuous (see [`super::coords`]): a code's centre `i + 0.5`, or a
+//! sub-pixel value from stripe-edge interpolation ([`super::subpixel`]) or a phase decoder.
+
+use nalgebra::Vector3;
+use rayon::prelude::*;
+
+use super::coords::ProjectorCoords;
+use crate::geometry::CameraModel;
+
+/// Parameters of [`triangulate`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TriangulationParams {
+    /// Column+row triangulation: largest distance between the camera and projector rays, metres.
+    pub max_ray_gap_m: f64,
+    /// A point is kept only if at least this many of its 8 range-image neighbours are valid and lie
+    /// within `neighbour_tolerance_m` of it along the camera axis (0 keeps every point).
+    pub min_neighbours: u8,
+    /// Depth difference to a neighbour that still counts as the same surface, metres.
+    pub neighbour_tolerance_m: f64,
+}
+
+impl Default for TriangulationParams {
+    fn default() -> Self {
+        TriangulationParams { max_ray_gap_m: 0.002, min_neighbours: 5, neighbour_tolerance_m: 0.002 }
+    }
+}
+
+/// Why [`triangulate`] refused its input.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TriangulateError {
+    /// The projector coordinates are not the camera's size.
+    #[error("projector coordinates of {found_width}x{found_height} pixels for a {width}x{height} camera")]
+    CoordsSize {
+        /// Camera width, pixels.
+        width: u32,
+        /// Camera height, pixels.
+        height: u32,
+        /// Width of the coordinates, pixels.
+        found_width: usize,
+        /// Height of the coordinates, pixels.
+        found_height: usize,
+    },
+    /// The colour image is not the camera's size.
+    #[error("colour image of {found_width}x{found_height} pixels for a {width}x{height} camera")]
+    ColourSize {
+        /// Camera width, pixels.
+        width: u32,
+        /// Camera height, pixels.
+        height: u32,
+        /// Width of the image, pixels.
+        found_width: u32,
+        /// Height of the image, pixels.
+        found_height: u32,
+    },
+    /// A camera or projector model holds a non-finite value.
+    #[error("the {which} model is not finite")]
+    Model {
+        /// `"camera"` or `"projector"`.
+        which: &'static str,
+    },
+}
+
+/// One view's triangulated surface: per camera pixel (row-major, `width * height`), the point, its
+/// depth along the camera axis, normal and colour. Invalid pixels have a `NaN` point, depth 0 and a
+/// zero normal.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RangeImage {
+    /// Camera width, pixels.
+    pub width: u32,
+    /// Camera height, pixels.
+    pub height: u32,
+    /// Points in the models' reference frame, metres (`NaN` where none).
+    pub points: Vec<[f32; 3]>,
+    /// Depth along the camera's optical axis, metres (0 where none): the depth map of the view.
+    pub depth_m: Vec<f32>,
+    /// Unit surface normals, reference frame, facing the camera (zero where none).
+    pub normals: Vec<[f32; 3]>,
+    /// 8-bit RGB colour from the fully lit frame (black without one).
+    pub colours: Vec<[u8; 3]>,
+    /// Pixels with a projector coordinate.
+    pub decoded: usize,
+    /// Pixels triangulated (before the outlier test).
+    pub triangulated: usize,
+    /// Points removed by the neighbour test.
+    pub outliers: usize,
+}
+
+impl RangeImage {
+    /// Valid points.
+    pub fn valid_count(&self) -> usize {
+        self.depth_m.iter().filter(|&&d| d > 0.0).count()
+    }
+
+    /// The valid points with their normals and colours, reference frame.
+    pub fn valid_points(&self) -> impl Iterator<Item = ([f32; 3], [f32; 3], [u8; 3])> + '_ {
+        (0..self.depth_m.len())
+            .filter(|&i| self.depth_m[i] > 0.0)
+            .map(|i| (self.points[i], self.normals[i], self.colours[i]))
+    }
+}
+
+/// The distortion-free plane of projector column `c` (continuous pixels) in the reference frame:
+/// `(n, d)` with `n·x + d = 0`.
+fn column_plane(projector: &CameraModel, c: f64) -> (Vector3<f64>, f64) {
+    let k = &projector.intrinsics;
+    let xn = (c - k.cx) / k.fx;
+    let r = &projector.pose.rotation;
+    let t = &projector.pose.translation;
+    // In projector coordinates the plane is X - xn Z = 0.
+    let np = Vector3::new(1.0, 0.0, -xn);
+    (r.transpose() * np, np.dot(t))
+}
+
+/// The point on the camera ray `o + s·d` (s > 0) that the projector maps to column `c`.
+fn ray_column(projector: &CameraModel, o: &Vector3<f64>, d: &Vector3<f64>, c: f64) -> Option<Vector3<f64>> {
+    let (n, off) = column_plane(projector, c);
+    let denom = n.dot(d);
+    if denom.abs() < 1e-12 {
+        return None;
+    }
+    let mut s = -(n.dot(o) + off) / denom;
+    if !(s.is_finite() && s > 0.0) {
+        return None;
+    }
+    let u = |s: f64| projector.project(&(o + d * s)).map(|p| p.x - c);
+    if projector.intrinsics.has_distortion() || projector.intrinsics.skew != 0.0 {
+        // Secant steps on the distorted column; the plane's solution is the first guess.
+        let mut f0 = u(s)?;
+        let mut s_prev = s * (1.0 + 1e-4);
+        let mut f_prev = u(s_prev)?;
+        for _ in 0..8 {
+            if f0.abs() < 1e-6 {
+                break;
+            }
+            let slope = (f0 - f_prev) / (s - s_prev);
+            if !(slope.is_finite() && slope != 0.0) {
+                return None;
+            }
+            let next = s - f0 / slope;
+            (s_prev, f_prev) = (s, f0);
+            s = next;
+            if !(s.is_finite() && s > 0.0) {
+                return None;
+            }
+            f0 = u(s)?;
+        }
+        if f0.abs() > 0.01 {
+            return None;
+        }
+    } else {
+        // Must be in front of the projector.
+        u(s)?;
+    }
+    Some(o + d * s)
+}
+
+/// Midpoint of the closest points of rays `o1 + s d1` and `o2 + t d2` (unit directions), both in
+/// front of their origins, if they pass within `max_gap` of each other.
+fn ray_ray(
+    o1: &Vector3<f64>,
+    d1: &Vector3<f64>,
+    o2: &Vector3<f64>,
+    d2: &Vector3<f64>,
+    max_gap: f64,
+) -> Option<Vector3<f64>> {
+    let w = o1 - o2;
+    let b = d1.dot(d2);
+    let (dd, e) = (d1.dot(&w), d2.dot(&w));
+    let den = 1.0 - b * b;
+    if den < 1e-12 {
+        return None;
+    }
+    let s = (b * e - dd) / den;
+    let t = (e - b * dd) / den;
+    if s <= 0.0 || t <= 0.0 {
+        return None;
+    }
+    let p1 = o1 + d1 * s;
+    let p2 = o2 + d2 * t;
+    ((p1 - p2).norm() <= max_gap).then(|| (p1 + p2) * 0.5)
+}
+
+/// Triangulates `coords` (the projector coordinates seen by `camera`'s pixels) with `projector`,
+/// colours the points from `white` (the fully lit frame, optional), estimates normals from the
+/// range-image neighbours and removes the points without enough neighbours on the same surface.
+/// Uses ray-ray triangulation when `coords` has rows, the column surface otherwise.
+pub fn triangulate(
+    camera: &CameraModel,
+    projector: &CameraModel,
+    coords: &ProjectorCoords,
+    white: Option<&image::RgbImage>,
+    params: &TriangulationParams,
+) -> Result<RangeImage, TriangulateError> {
+    let (w, h) = (camera.width, camera.height);
+    if coords.width != w as usize || coords.height != h as usize {
+        return Err(TriangulateError::CoordsSize {
+            width: w,
+            height: h,
+            found_width: coords.width,
+            found_height: coords.height,
+        });
+    }
+    if let Some(img) = white {
+        if img.width() != w || img.height() != h {
+            return Err(TriangulateError::ColourSize {
+                width: w,
+                height: h,
+                found_width: img.width(),
+                found_height: img.height(),
+            });
+        }
+    }
+    if !camera.is_finite() {
+        return Err(TriangulateError::Model { which: "camera" });
+    }
+    if !projector.is_finite() {
+        return Err(TriangulateError::Model { which: "projector" });
+    }
+    let n = w as usize * h as usize;
+    let o = camera.centre();
+    let po = projector.centre();
+    let mut points = vec![[f32::NAN; 3]; n];
+    let mut depth = vec![0.0f32; n];
+    let decoded = (0..n).filter(|&i| coords.get(i % w as usize, i / w as usize).is_some()).count();
+    points.par_chunks_mut(w as usize).zip(depth.par_chunks_mut(w as usize)).enumerate().for_each(|(y, (pr, dr))| {
+        for x in 0..w as usize {
+            let Some((c, r)) = coords.get(x, y) else { continue };
+            let d = camera.pixel_ray(x as f64 + 0.5, y as f64 + 0.5);
+            let p = match r {
+                None => ray_column(projector, &o, &d, f64::from(c)),
+                Some(r) => {
+                    let pd = projector.pixel_ray(f64::from(c), f64::from(r));
+                    ray_ray(&o, &d, &po, &pd, params.max_ray_gap_m)
+                }
+            };
+            if let Some(p) = p {
+                let z = camera.pose.apply(&p).z;
+                if z > 0.0 && p.iter().all(|v| v.is_finite()) {
+                    pr[x] = [p.x as f32, p.y as f32, p.z as f32];
+                    dr[x] = z as f32;
+                }
+            }
+        }
+    });
+    let triangulated = depth.iter().filter(|&&d| d > 0.0).count();
+
+    // Outlier test and normals, from the 8-neighbourhood in the range image.
+    let (wi, hi) = (w as i64, h as i64);
+    let tol = params.neighbour_tolerance_m as f32;
+    let at = |x: i64, y: i64| -> Option<usize> {
+        (x >= 0 && y >= 0 && x < wi && y < hi).then(|| (y * wi + x) as usize).filter(|&i| depth[i] > 0.0)
+    };
+    let keep: Vec<bool> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            if depth[i] <= 0.0 {
+                return false;
+            }
+            let (x, y) = ((i % w as usize) as i64, (i / w as usize) as i64);
+            let mut near = 0u8;
+            for (dx, dy) in [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)] {
+                if let Some(j) = at(x + dx, y + dy) {
+                    near += u8::from((depth[j] - depth[i]).abs() <= tol);
+                }
+            }
+            near >= params.min_neighbours
+        })
+        .collect();
+    let outliers = triangulated - keep.iter().filter(|&&k| k).count();
+    let kept = |x: i64, y: i64| at(x, y).filter(|&j| keep[j]);
+    let normals: Vec<[f32; 3]> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            if !keep[i] {
+                return [0.0; 3];
+            }
+            let (x, y) = ((i % w as usize) as i64, (i / w as usize) as i64);
+            let p = |j: usize| Vector3::new(points[j][0], points[j][1], points[j][2]);
+            let close = |j: usize| (depth[j] - depth[i]).abs() <= tol;
+            // Central differences where both neighbours are on the surface, else one-sided.
+            let diff = |a: Option<usize>, b: Option<usize>| match (a.filter(|&j| close(j)), b.filter(|&j| close(j))) {
+                (Some(a), Some(b)) => Some(p(b) - p(a)),
+                (Some(a), None) => Some(p(i) - p(a)),
+                (None, Some(b)) => Some(p(b) - p(i)),
+                (None, None) => None,
+            };
+            let (Some(du), Some(dv)) = (diff(kept(x - 1, y), kept(x + 1, y)), diff(kept(x, y - 1), kept(x, y + 1)))
+            else {
+                return [0.0; 3];
+            };
+            let mut nrm = du.cross(&dv);
+            let len = nrm.norm();
+            if !(len > 0.0 && len.is_finite()) {
+                return [0.0; 3];
+            }
+            nrm /= len;
+            let to_camera = Vector3::new(o.x as f32, o.y as f32, o.z as f32) - p(i);
+            if nrm.dot(&to_camera) < 0.0 {
+                nrm = -nrm;
+            }
+            [nrm.x, nrm.y, nrm.z]
+        })
+        .collect();
+    let colours: Vec<[u8; 3]> = (0..n)
+        .map(|i| white.map_or([0; 3], |img| img.as_raw()[3 * i..3 * i + 3].try_into().unwrap_or([0; 3])))
+        .collect();
+    for (i, k) in keep.iter().enumerate() {
+        if !k {
+            points[i] = [f32::NAN; 3];
+            depth[i] = 0.0;
+        }
+    }
+    Ok(RangeImage { width: w, height: h, points, depth_m: depth, normals, colours, decoded, triangulated, outliers })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{Intrinsics, Pose};
+
+    fn model(eye: [f64; 3], target: [f64; 3], w: u32, h: u32, f: f64, k1: f64) -> CameraModel {
+        CameraModel {
+            width: w,
+            height: h,
+            intrinsics: Intrinsics { fx: f, fy: f, cx: w as f64 / 2.0, cy: h as f64 / 2.0, skew: 0.0, k1, k2: 0.0 },
+            pose: Pose::look_at(Vector3::from(eye), Vector3::from(target), Vector3::z()),
+        }
+    }
+
+    /// Exact projector coordinates for each camera pixel from a surface `hit(origin, dir) -> point`.
+    fn coords_of(
+        camera: &CameraModel,
+        projector: &CameraModel,
+        rows: bool,
+        hit: impl Fn(&Vector3<f64>, &Vector3<f64>) -> Option<Vector3<f64>>,
+    ) -> ProjectorCoords {
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        let mut col = vec![f32::NAN; w * h];
+        let mut row = vec![f32::NAN; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let d = camera.pixel_ray(x as f64 + 0.5, y as f64 + 0.5);
+                if let Some(p) = hit(&camera.centre(), &d).and_then(|p| projector.project(&p)) {
+                    col[y * w + x] = p.x as f32;
+                    row[y * w + x] = p.y as f32;
+                }
+            }
+        }
+        ProjectorCoords { width: w, height: h, column: col, row: rows.then_some(row) }
+    }
+
+    fn rig(k1: f64) -> (CameraModel, CameraModel) {
+        let target = [0.0, 0.0, 0.03];
+        (model([0.0, -0.4, 0.2], target, 96, 72, 200.0, k1), model([0.12, -0.38, 0.2], target, 200, 150, 260.0, k1))
+    }
+
+    fn plane_hit(o: &Vector3<f64>, d: &Vector3<f64>) -> Option<Vector3<f64>> {
+        // The plane y = 0.01 (facing the camera).
+        let s = (0.01 - o.y) / d.y;
+        (s > 0.0).then(|| o + d * s)
+    }
+
+    fn sphere_hit(o: &Vector3<f64>, d: &Vector3<f64>) -> Option<Vector3<f64>> {
+        let c = Vector3::new(0.0, 0.0, 0.03);
+        let oc = o - c;
+        let b = oc.dot(d);
+        let disc = b * b - (oc.norm_squared() - 0.03 * 0.03);
+        (disc >= 0.0).then(|| o + d * (-b - disc.sqrt()))
+    }
+
+    #[test]
+    fn a_plane_is_recovered_with_distortion_by_column_plane_and_by_ray_ray() {
+        for k1 in [0.0, -0.08] {
+            let (cam, proj) = rig(k1);
+            for rows in [false, true] {
+                let coords = coords_of(&cam, &proj, rows, plane_hit);
+                let params = TriangulationParams { min_neighbours: 0, ..Default::default() };
+                let r = triangulate(&cam, &proj, &coords, None, &params).expect("triangulate");
+                assert!(r.valid_count() > 96 * 72 / 2, "k1 {k1} rows {rows}: {} points", r.valid_count());
+                for (p, n, _) in r.valid_points() {
+                    assert!((p[1] - 0.01).abs() < 2e-6, "k1 {k1} rows {rows}: point {p:?} off the plane");
+                    if n != [0.0; 3] {
+                        assert!(n[1] < -0.999, "normal {n:?} should face the camera (-y)");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_sphere_is_recovered_and_its_normals_point_outwards() {
+        let (cam, proj) = rig(-0.05);
+        let coords = coords_of(&cam, &proj, false, sphere_hit);
+        let r = triangulate(&cam, &proj, &coords, None, &TriangulationParams::default()).expect("triangulate");
+        assert!(r.valid_count() > 300, "{} points", r.valid_count());
+        let c = Vector3::new(0.0f32, 0.0, 0.03);
+        let mut with_normal = 0;
+        for (p, n, _) in r.valid_points() {
+            let v = Vector3::from(p) - c;
+            assert!((v.norm() - 0.03).abs() < 1e-5, "point {p:?} off the sphere");
+            if n != [0.0; 3] {
+                with_normal += 1;
+                assert!(Vector3::from(n).dot(&v.normalize()) > 0.98, "normal {n:?} at {p:?}");
+            }
+        }
+        assert!(with_normal > 250, "{with_normal} normals");
+    }
+
+    #[test]
+    fn quantised_columns_and_outliers() {
+        // Columns rounded to code centres: the error is bounded by half a projector pixel's depth.
+        let (cam, proj) = rig(0.0);
+        let mut coords = coords_of(&cam, &proj, false, plane_hit);
+        for c in coords.column.iter_mut() {
+            *c = c.floor() + 0.5;
+        }
+        // One wild pixel in the middle: 40 projector columns off.
+        let mid = 36 * 96 + 48;
+        coords.column[mid] += 40.0;
+        let r = triangulate(&cam, &proj, &coords, None, &TriangulationParams::default()).expect("triangulate");
+        assert_eq!(r.depth_m[mid], 0.0, "the wild pixel is removed");
+        assert!(r.outliers >= 1);
+        let worst = r.valid_points().map(|(p, _, _)| (p[1] - 0.01).abs()).fold(0.0f32, f32::max);
+        // Half a projector pixel is 0.5 / 260 rad, about 0.8 mm across at 0.4 m; the camera and
+        // projector rays meet at about 17 degrees, so depth moves up to 0.8 mm / tan(17°) ≈ 2.6 mm,
+        // a little more on the slanted plane.
+        assert!(worst > 1e-4 && worst < 3.5e-3, "worst error {worst} m");
+    }
+
+    #[test]
+    fn mismatched_sizes_are_errors() {
+        let (cam, proj) = rig(0.0);
+        let coords = ProjectorCoords { width: 3, height: 3, column: vec![0.0; 9], row: None };
+        let e = triangulate(&cam, &proj, &coords, None, &TriangulationParams::default()).expect_err("size");
+        assert!(matches!(e, TriangulateError::CoordsSize { found_width: 3, .. }));
+        let coords = coords_of(&cam, &proj, false, plane_hit);
+        let img = image::RgbImage::new(4, 4);
+        let e = triangulate(&cam, &proj, &coords, Some(&img), &TriangulationParams::default()).expect_err("size");
+        assert!(matches!(e, TriangulateError::ColourSize { found_width: 4, .. }));
+    }
+}

@@ -1,0 +1,825 @@
+//! The scan flow of method `structured-light`: at each turntable position the projector shows the
+//! sequence of `[reconstruction.structured_light] coding` and the sequencer captures one fresh frame
+//! per pattern (each pattern held for `exposure_ms`, a whole number of projector refreshes, when set):
+//!
+//! - `"gray"` / `"binary"`: the stripe sequence (column pairs, row pairs when `rows`, white, black),
+//!   decoded with the thresholds and stripe-edge sub-pixel columns by default;
+//! - `"phase-shift"`, `"debruijn"`, `"sweep"`: the [`PatternSet`] patterns (RGB) followed by one
+//!   full-white frame (colour of the points, the dark-background free-space test, the visual hull,
+//!   and for De Bruijn the albedo normalisation of the colour frame), decoded by
+//!   [`PatternSet::decode`]. With `gamma_compensation`, the projector response is measured first
+//!   (uniform grey levels at the first position, [`ResponseCurve::fit`]) and the phase-shift fringes
+//!   are pre-distorted with its inverse; the fit is reported under `structured_light.response`.
+//!
+//! Each stack is decoded into projector coordinates, triangulated with the calibrated camera and
+//! projector in the object frame (the rig's turntable axis is the object frame's z axis), and the
+//! view's range image is fused into a TSDF over the object-frame grid as it arrives. The merged
+//! point cloud (normals from each range image, colours from the white frame), cleaned by a
+//! statistical outlier test over its nearest neighbours, is written as `cloud.ply`; the mesh (`model.ply/stl/obj`) is read off the TSDF and its vertices moved onto the
+//! zero crossing. On a simulated rig the report compares the mesh with the scene
+//! (`ground_truth.chamfer_rel` = symmetric Chamfer distance / bounding-box diagonal, voxel IoU).
+//!
+//! Frames are written as `frames/pos_NNN_white.png` (the fully lit frame) and
+//! `frames/pos_NNN_columns.png` (16-bit decoded projector column, 65535 = none).
+
+use std::path::Path;
+use std::time::Instant;
+
+use super::report::{GroundTruth, Report, Timings, VisualHull};
+use super::{ScanError, ScanEvent};
+use crate::acquisition::{self, CancelToken, PatternStack};
+use crate::config::structured_light::{exposure_frames, PhaseUnwrapping, StripeCoding, StructuredLightConfig};
+use crate::config::{ProjectorConfig, RigConfig};
+use crate::devices::{build_rig, Pattern};
+use crate::geometry::{CameraModel, VoxelGrid};
+use crate::pipeline::export::{self, write_atomic};
+use crate::pipeline::structured_light::debruijn::{DeBruijnDecodeParams, DeBruijnStripes};
+use crate::pipeline::structured_light::gamma::{calibration_levels, GammaError, ResponseCurve};
+use crate::pipeline::structured_light::phase::{PhaseDecodeParams, PhaseShiftPatterns, Unwrapping};
+use crate::pipeline::structured_light::stripe::SweepingStripe;
+use crate::pipeline::structured_light::{
+    decode, interpolate_stripe_edges, triangulate, CodesError, Coding, DecodeError, DecodeParams, GrayCodePatterns,
+    PatternError, PatternSet, ProjectorCoords, ProjectorMap, RangeImage, TriangulateError, TriangulationParams,
+};
+use crate::pipeline::{
+    chamfer_distance, extract_surface, sample_mesh, CarveError, CloudError, DepthFusionError, FusionParams, Mask,
+    MeshParams, Occupancy, PointCloud, SpaceCarver, Tsdf,
+};
+
+/// Surface samples per side for the Chamfer distance.
+const CHAMFER_SAMPLES: usize = 60_000;
+
+/// Why the structured-light part of a scan failed.
+#[derive(Debug, thiserror::Error)]
+pub enum StructuredLightError {
+    /// The rig has no `[projector]`.
+    #[error("method structured-light needs a [projector] in the rig file")]
+    NoProjector,
+    /// The pattern sequence cannot be laid out for the projector.
+    #[error("pattern sequence for the projector")]
+    Patterns(#[source] PatternError),
+    /// The coding's pattern set cannot be laid out for the projector.
+    #[error("pattern set of the coding for the projector")]
+    Codes(#[source] CodesError),
+    /// A position's frames did not decode with the coding's decoder.
+    #[error("decoding the coded patterns at position {position}")]
+    CodesDecode {
+        /// 0-based position.
+        position: usize,
+        /// Why.
+        #[source]
+        source: CodesError,
+    },
+    /// The grey-level frames of the gamma measurement could not be captured.
+    #[error("capturing the grey levels of the projector response measurement")]
+    ResponseCapture(#[source] acquisition::AcquisitionError),
+    /// The projector response could not be fitted to the grey-level frames.
+    #[error("fitting the projector response (gamma) to the grey-level frames")]
+    Response(#[source] GammaError),
+    /// A position's frames did not decode.
+    #[error("decoding the patterns at position {position}")]
+    Decode {
+        /// 0-based position.
+        position: usize,
+        /// Why.
+        #[source]
+        source: DecodeError,
+    },
+    /// A position delivered a different number of frames than patterns were shown.
+    #[error("position {position} delivered {found} frames for {expected} patterns")]
+    FrameCount {
+        /// 0-based position.
+        position: usize,
+        /// Patterns shown.
+        expected: usize,
+        /// Frames delivered.
+        found: usize,
+    },
+    /// A frame is not the camera's size.
+    #[error(
+        "frame {index} at position {position} is {found_width}x{found_height} pixels, the camera's {width}x{height}"
+    )]
+    FrameSize {
+        /// 0-based position.
+        position: usize,
+        /// Frame index in the stack.
+        index: usize,
+        /// Camera width, pixels.
+        width: u32,
+        /// Camera height, pixels.
+        height: u32,
+        /// Frame width, pixels.
+        found_width: u32,
+        /// Frame height, pixels.
+        found_height: u32,
+    },
+    /// Triangulation refused a position's data.
+    #[error("triangulating position {position}")]
+    Triangulate {
+        /// 0-based position.
+        position: usize,
+        /// Why.
+        #[source]
+        source: TriangulateError,
+    },
+    /// `exposure_ms` is not a whole number of projector refreshes.
+    #[error(
+        "reconstruction.structured_light.exposure_ms = {exposure_ms} is not a whole multiple of \
+         projector.frame_period_ms = {frame_period_ms}"
+    )]
+    Exposure {
+        /// The exposure asked for, milliseconds.
+        exposure_ms: f64,
+        /// The projector's refresh period, milliseconds.
+        frame_period_ms: f64,
+    },
+    /// The TSDF rejected its input.
+    #[error("fusing the range images")]
+    Fusion(#[source] DepthFusionError),
+    /// The merged point cloud was rejected.
+    #[error("merging the point clouds")]
+    Cloud(#[source] CloudError),
+    /// The visual hull of the white frames' silhouettes (for comparison) could not be carved.
+    #[error("carving the visual hull")]
+    Hull(#[source] CarveError),
+}
+
+/// The measured projector-camera response, for `report.json`.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct ResponseSummary {
+    /// Fitted exponent of the projector's input-to-light response (1 = linear).
+    pub gamma: f64,
+    /// Median camera level of projected black over the lit pixels (projector black + ambient), 8-bit grey.
+    pub black: f64,
+    /// Median camera level of projected white over the lit pixels, 8-bit grey.
+    pub white: f64,
+    /// Uniform grey levels projected for the fit, 8-bit input levels.
+    pub levels: Vec<u8>,
+    /// Whether the phase-shift fringes were pre-distorted with the fitted response's inverse.
+    pub compensated: bool,
+}
+
+/// What the structured-light pipeline did, for `report.json` (key `structured_light`).
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct StructuredLightSummary {
+    /// `"gray"`, `"binary"`, `"phase-shift"`, `"debruijn"` or `"sweep"`.
+    pub coding: StripeCoding,
+    /// Phase shift only: steps per period, fringe periods (projector pixels) and the unwrapping.
+    pub phase: Option<PhaseSummary>,
+    /// The projector response measured before the scan (`gamma_compensation = true`), else `None`.
+    pub response: Option<ResponseSummary>,
+    /// Each pattern stays on screen this long after it appeared (`exposure_ms`), milliseconds.
+    pub exposure_ms: Option<f64>,
+    /// Whether rows were projected (ray-ray triangulation) or only columns (ray-plane).
+    pub rows: bool,
+    /// Whether the columns were interpolated between stripe edges.
+    pub subpixel: bool,
+    /// Patterns projected per position.
+    pub patterns_per_position: usize,
+    /// Camera pixels per view (width × height).
+    pub pixels_per_view: usize,
+    /// Pixels that decoded, per view.
+    pub decoded: Vec<usize>,
+    /// Fraction of all camera pixels that decoded (0..1).
+    pub valid_fraction: f64,
+    /// Points kept, per view.
+    pub points_per_view: Vec<usize>,
+    /// Points in the merged cloud (`cloud.ply`), after outlier removal.
+    pub points: usize,
+    /// Points removed by the range-image neighbour test, all views.
+    pub outliers: usize,
+    /// Points removed from the merged cloud by the statistical outlier test.
+    pub merged_outliers: usize,
+    /// Seconds spent on the merged cloud's outlier removal.
+    pub merge_s: f64,
+    /// Mesh vertices moved onto the TSDF's zero crossing.
+    pub refined_vertices: usize,
+    /// TSDF truncation distance, metres.
+    pub truncation_m: f64,
+    /// Simulated rig only: mean distance, metres, from each cloud point to where its camera ray
+    /// really meets the scene (the triangulation error before fusion).
+    pub point_error_mean_m: Option<f64>,
+    /// Simulated rig only: root mean square of the same distances, metres.
+    pub point_error_rms_m: Option<f64>,
+    /// Seconds spent decoding.
+    pub decode_s: f64,
+    /// Seconds spent triangulating.
+    pub triangulate_s: f64,
+    /// Seconds spent integrating into the TSDF.
+    pub integrate_s: f64,
+}
+
+/// The phase-shift settings used, for `report.json`.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct PhaseSummary {
+    /// Phase steps per period.
+    pub steps: usize,
+    /// Fringe periods, projector pixels (fine first).
+    pub periods_px: Vec<f64>,
+    /// `"gray"` or `"multi-frequency"`.
+    pub unwrapping: PhaseUnwrapping,
+}
+
+/// The [`PatternSet`] of `settings` for a `width` x `height` projector, or `None` for the Gray/binary
+/// stripe codings (which the flow projects column-only with stripe-edge interpolation itself).
+pub fn pattern_set(
+    width: u32,
+    height: u32,
+    settings: &StructuredLightConfig,
+) -> Result<Option<PatternSet>, CodesError> {
+    let s = settings;
+    Ok(Some(match s.coding {
+        StripeCoding::Gray | StripeCoding::Binary => return Ok(None),
+        StripeCoding::PhaseShift => {
+            let period = s.periods_px.first().copied().unwrap_or(0.0);
+            let unwrapping = match s.unwrapping {
+                PhaseUnwrapping::Gray => Unwrapping::GrayCode,
+                PhaseUnwrapping::MultiFrequency => {
+                    Unwrapping::MultiFrequency { coarser_periods: s.periods_px.iter().skip(1).copied().collect() }
+                }
+            };
+            let p = PhaseShiftPatterns::new(width, height, s.steps, period, unwrapping, s.rows)?;
+            PatternSet::PhaseShift(p, PhaseDecodeParams { min_modulation: s.min_modulation })
+        }
+        StripeCoding::DeBruijn => PatternSet::DeBruijn(
+            DeBruijnStripes::new(width, height, s.debruijn_colours, s.debruijn_window, s.stripe_px)?,
+            DeBruijnDecodeParams::default(),
+        ),
+        StripeCoding::Sweep => PatternSet::SweepingStripe(
+            SweepingStripe::new(width, height, s.stripe_px, s.sweep_step_px)?,
+            s.sweep_min_contrast,
+        ),
+    }))
+}
+
+/// The coded colour frame divided, channel by channel, by the fully lit white frame (both RGB,
+/// same size), scaled so a channel lit as brightly as under white reads 200: the surface's own colour
+/// (albedo) cancels and the stripe colours remain, so a strongly coloured surface (the cup's red
+/// bands have green and blue under half of red) does not turn the stripes' hues. Channels darker
+/// than 8 grey levels under white read 0 (no light to compare).
+fn albedo_normalised(coded: &[u8], white: &[u8]) -> Vec<u8> {
+    coded
+        .iter()
+        .zip(white)
+        .map(|(&c, &w)| if w < 8 { 0 } else { (u32::from(c) * 200 / u32::from(w)).min(255) as u8 })
+        .collect()
+}
+
+/// A uniform RGB projector pattern of grey `level`.
+fn uniform_pattern(level: u8, width: u32, height: u32) -> Pattern {
+    Pattern { width, height, rgb: std::sync::Arc::new(vec![level; 3 * width as usize * height as usize]) }
+}
+
+/// Measures the projector-camera response before the scan: at the plan's first position the
+/// projector shows uniform grey levels ([`calibration_levels`]) through the same sequencer as the
+/// scan (waiting for each to be on screen), and [`ResponseCurve::fit`] fits gamma, black and white
+/// levels to the luma of the pixels lit with at least `min_contrast` grey levels (the object and
+/// any lit background).
+fn measure_response(
+    rig: &mut crate::devices::Rig,
+    plan: &crate::config::ScanPlan,
+    projector: &CameraModel,
+    hold: std::time::Duration,
+    min_contrast: f64,
+    cancel: &CancelToken,
+) -> Result<ResponseSummary, StructuredLightError> {
+    let levels = calibration_levels();
+    let patterns: Vec<Pattern> =
+        levels.iter().map(|&l| uniform_pattern(l, projector.width, projector.height)).collect();
+    let one = crate::config::ScanPlan { positions: 1, ..plan.clone() };
+    let (tx, rx) = std::sync::mpsc::sync_channel(1);
+    acquisition::run_structured_light_scan_held(rig, &one, &patterns, hold, &tx, cancel, &mut |_| {})
+        .map_err(StructuredLightError::ResponseCapture)?;
+    drop(tx);
+    let stack = rx.recv().map_err(|_| {
+        StructuredLightError::ResponseCapture(acquisition::AcquisitionError::PipelineGone { position: 0 })
+    })?;
+    let greys: Vec<Vec<u8>> = stack.frames.iter().map(|f| image::imageops::grayscale(&f.image).into_raw()).collect();
+    let images: Vec<&[u8]> = greys.iter().map(Vec::as_slice).collect();
+    let curve = ResponseCurve::fit(&levels, &images, min_contrast).map_err(StructuredLightError::Response)?;
+    tracing::info!(gamma = curve.gamma, black = curve.black, white = curve.white, "projector response measured");
+    Ok(ResponseSummary { gamma: curve.gamma, black: curve.black, white: curve.white, levels, compensated: false })
+}
+
+/// The projector's calibrated model in the rig frame.
+fn projector_model(config: &RigConfig) -> Option<CameraModel> {
+    config.projector.as_ref().and_then(ProjectorConfig::model)
+}
+
+/// The pattern sequence of `settings` for a projector of `model`'s size, and the indices (into the
+/// sequence) of the images projected: every column pair, the row pairs only with `rows`, white, black.
+pub fn projected_patterns(
+    model: &CameraModel,
+    settings: &StructuredLightConfig,
+) -> Result<(GrayCodePatterns, Vec<usize>), PatternError> {
+    // The other codings do not use this sequence ([`pattern_set`] lays theirs out); Gray stands in.
+    let coding = match settings.coding {
+        StripeCoding::Binary => Coding::Binary,
+        _ => Coding::Gray,
+    };
+    let seq = GrayCodePatterns::with_coding(model.width, model.height, coding)?;
+    let cb = 2 * seq.column_bits() as usize;
+    let rb = 2 * seq.row_bits() as usize;
+    let mut used: Vec<usize> = (0..cb).collect();
+    if settings.rows {
+        used.extend(cb..cb + rb);
+    }
+    used.extend([seq.white_index(), seq.black_index()]);
+    Ok((seq, used))
+}
+
+/// A grey pattern image as an RGB projector pattern.
+fn to_pattern(grey: &[u8], width: u32, height: u32) -> Pattern {
+    let rgb: Vec<u8> = grey.iter().flat_map(|&g| [g, g, g]).collect();
+    Pattern { width, height, rgb: std::sync::Arc::new(rgb) }
+}
+
+/// Decodes one position's stack into projector coordinates. Without rows, the row pairs of the
+/// sequence were not projected: the decoder is given (black, white) for each of them, which reads as
+/// row bit 0 with full margin, so the row code is 0 and ignored (only columns are returned).
+fn decode_stack(
+    seq: &GrayCodePatterns,
+    used: &[usize],
+    greys: &[Vec<u8>],
+    camera: &CameraModel,
+    settings: &StructuredLightConfig,
+    position: usize,
+    map: &mut ProjectorMap,
+) -> Result<ProjectorCoords, StructuredLightError> {
+    let black = &greys[used.len() - 1];
+    let white = &greys[used.len() - 2];
+    let mut images: Vec<&[u8]> = vec![black.as_slice(); seq.count()];
+    let mut filled = vec![false; seq.count()];
+    for (k, &i) in used.iter().enumerate() {
+        images[i] = greys[k].as_slice();
+        filled[i] = true;
+    }
+    for (i, done) in filled.iter().enumerate() {
+        // An unprojected row pair: pattern = black, inverse = white.
+        if !done && i % 2 == 1 {
+            images[i] = white.as_slice();
+        }
+    }
+    let params = DecodeParams { black_threshold: settings.black_threshold, white_threshold: settings.white_threshold };
+    decode(seq, &images, camera.width as usize, camera.height as usize, &params, map)
+        .map_err(|source| StructuredLightError::Decode { position, source })?;
+    Ok(if settings.subpixel {
+        interpolate_stripe_edges(map, settings.rows)
+    } else {
+        ProjectorCoords::from_map(map, settings.rows)
+    })
+}
+
+/// The depth map to fuse from a range image: the measured depth, 0 (free space) where the white frame
+/// is darker than `free_below`, `NaN` (unknown) elsewhere.
+fn fusion_depth(range: &RangeImage, white_grey: &[u8], free_below: u8) -> Vec<f32> {
+    range
+        .depth_m
+        .iter()
+        .zip(white_grey)
+        .map(|(&d, &g)| {
+            if d > 0.0 {
+                d
+            } else if g < free_below {
+                0.0
+            } else {
+                f32::NAN
+            }
+        })
+        .collect()
+}
+
+fn write_png<P: image::Pixel<Subpixel = S> + image::PixelWithColorType, S: image::Primitive>(
+    file: &Path,
+    width: u32,
+    height: u32,
+    data: Vec<S>,
+) -> Result<(), ScanError>
+where
+    [S]: image::EncodableLayout,
+{
+    let encode_err = |source| ScanError::EncodeFrame { path: file.to_owned(), source };
+    let image = image::ImageBuffer::<P, Vec<S>>::from_raw(width, height, data).ok_or_else(|| {
+        encode_err(image::ImageError::Parameter(image::error::ParameterError::from_kind(
+            image::error::ParameterErrorKind::DimensionMismatch,
+        )))
+    })?;
+    let mut png = Vec::new();
+    image.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png).map_err(encode_err)?;
+    write_atomic(file, &png).map_err(ScanError::Export)
+}
+
+/// Distances from each point of `range` to the true surface along its camera ray (`camera` in the
+/// object frame): `(sum, sum of squares, count)`, metres. A point whose ray misses the scene is
+/// skipped (it cannot be scored).
+fn point_errors(camera: &CameraModel, range: &RangeImage, scene: &crate::sim::Scene) -> (f64, f64, usize) {
+    let o = camera.centre();
+    let w = range.width as usize;
+    let (mut sum, mut sq, mut n) = (0.0, 0.0, 0);
+    for (i, p) in range.points.iter().enumerate() {
+        if range.depth_m[i] <= 0.0 {
+            continue;
+        }
+        let d = camera.pixel_ray((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
+        if let Some(hit) = scene.intersect(&o, &d, 0.0, f64::INFINITY) {
+            let e = (nalgebra::Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])) - hit.point).norm();
+            sum += e;
+            sq += e * e;
+            n += 1;
+        }
+    }
+    (sum, sq, n)
+}
+
+/// Scan the rig described by `config` with structured light and write the results into `out`.
+pub fn run_structured_light_scan(
+    config: &RigConfig,
+    out: &Path,
+    cancel: &CancelToken,
+    events: &mut dyn FnMut(ScanEvent),
+) -> Result<Report, ScanError> {
+    let started = Instant::now();
+    let sl_err = ScanError::StructuredLight;
+    let settings = &config.reconstruction.structured_light;
+    let projector = projector_model(config).ok_or(sl_err(StructuredLightError::NoProjector))?;
+    let (seq, used) =
+        projected_patterns(&projector, settings).map_err(|e| sl_err(StructuredLightError::Patterns(e)))?;
+    let set =
+        pattern_set(projector.width, projector.height, settings).map_err(|e| sl_err(StructuredLightError::Codes(e)))?;
+    let frame_period_ms = config.projector.as_ref().map_or(0.0, ProjectorConfig::frame_period_ms);
+    // Validation refuses an exposure that is not a whole number of refreshes; this re-check keeps a
+    // hand-built config from reaching the sequencer with one.
+    let hold = match settings.exposure_ms {
+        Some(e) => {
+            let frames = exposure_frames(e, frame_period_ms)
+                .ok_or(sl_err(StructuredLightError::Exposure { exposure_ms: e, frame_period_ms }))?;
+            let hold_ms = if frame_period_ms > 0.0 { f64::from(frames) * frame_period_ms } else { e };
+            std::time::Duration::from_secs_f64(hold_ms / 1000.0)
+        }
+        None => std::time::Duration::ZERO,
+    };
+
+    let out_dir = super::OutputDir::prepare(out)?;
+    let out = out_dir.path().to_owned();
+    let frames_dir = out.join("frames");
+    std::fs::create_dir_all(&frames_dir).map_err(|source| ScanError::OutputDir {
+        path: frames_dir.clone(),
+        what: "cannot create it",
+        source,
+    })?;
+    let mut rig = build_rig(config).map_err(ScanError::OpenDevices)?;
+    let sim = rig.sim.clone();
+    // Gamma: measure the response first, then pre-distort the fringes with its inverse.
+    let mut response = None;
+    let mut lut = None;
+    if settings.gamma_compensation {
+        events(ScanEvent::Stage("projector response"));
+        let mut r = measure_response(&mut rig, &config.scan, &projector, hold, settings.gamma_min_contrast, cancel)
+            .map_err(sl_err)?;
+        if matches!(set, Some(PatternSet::PhaseShift(..))) {
+            lut = Some(ResponseCurve { gamma: r.gamma, black: r.black, white: r.white }.compensation_lut());
+            r.compensated = true;
+        }
+        response = Some(r);
+    }
+    // The projected sequence: the Gray/binary stripes as before; any other coding's patterns (RGB,
+    // through the LUT) followed by one full-white frame, which gives the points their colour, the
+    // dark-background free-space test and the visual hull (a one-shot De Bruijn scan thus takes the
+    // coded frame plus a white frame per position).
+    let white_rgb = uniform_pattern(255, projector.width, projector.height);
+    let patterns: Vec<Pattern> = match &set {
+        None => used
+            .iter()
+            .map(|&i| seq.render(i).map(|g| to_pattern(&g, projector.width, projector.height)))
+            .collect::<Result<_, _>>()
+            .map_err(|e| sl_err(StructuredLightError::Patterns(e)))?,
+        Some(set) => (0..set.count())
+            .map(|i| {
+                set.render_rgb(i, lut.as_ref()).map(|rgb| Pattern {
+                    width: projector.width,
+                    height: projector.height,
+                    rgb: std::sync::Arc::new(rgb),
+                })
+            })
+            .chain(std::iter::once(Ok(white_rgb)))
+            .collect::<Result<_, _>>()
+            .map_err(|e| sl_err(StructuredLightError::Codes(e)))?,
+    };
+    let recon = &config.reconstruction;
+    let grid = VoxelGrid::from_resolution(&recon.bbox(), recon.resolution);
+    let fusion = FusionParams {
+        truncation_m: settings.truncation_voxels * grid.voxel_size,
+        max_weight: 64.0,
+        missing_is_free: true,
+    };
+    let mut tsdf = Tsdf::new(grid, fusion).map_err(|e| sl_err(StructuredLightError::Fusion(e)))?;
+    // For comparison: the visual hull of the white frames' silhouettes (pixels not darker than
+    // `free_below`), what space carving alone would give. Only with a background level.
+    let mut hull = if settings.free_below > 0 {
+        Some(SpaceCarver::new(grid).map_err(|e| sl_err(StructuredLightError::Hull(e)))?)
+    } else {
+        None
+    };
+    let camera = config.camera.model();
+    let tri = TriangulationParams {
+        max_ray_gap_m: settings.max_ray_gap_m,
+        min_neighbours: settings.min_neighbours,
+        neighbour_tolerance_m: settings.neighbour_tolerance_m,
+    };
+    let mut summary = StructuredLightSummary {
+        coding: settings.coding,
+        phase: (settings.coding == StripeCoding::PhaseShift).then(|| PhaseSummary {
+            steps: settings.steps,
+            periods_px: settings.periods_px.clone(),
+            unwrapping: settings.unwrapping,
+        }),
+        response,
+        exposure_ms: settings.exposure_ms,
+        rows: settings.rows,
+        subpixel: settings.subpixel && set.is_none(),
+        patterns_per_position: patterns.len(),
+        pixels_per_view: camera.width as usize * camera.height as usize,
+        truncation_m: fusion.truncation_m,
+        ..Default::default()
+    };
+    let mut cloud = PointCloud::new();
+    let mut map = ProjectorMap::new();
+    let mut timings = Timings::default();
+    let (mut err_sum, mut err_sq, mut err_n) = (0.0f64, 0.0f64, 0usize);
+
+    let plan = config.scan.clone();
+    let (frames, capture_s) = super::acquire_and_process(
+        &mut rig,
+        |rig, tx, progress| {
+            acquisition::run_structured_light_scan_held(rig, &plan, &patterns, hold, tx, cancel, progress)
+        },
+        events,
+        |stack: PatternStack, events| {
+            let position = stack.position;
+            if stack.frames.len() != patterns.len() {
+                return Err(sl_err(StructuredLightError::FrameCount {
+                    position,
+                    expected: patterns.len(),
+                    found: stack.frames.len(),
+                }));
+            }
+            let mut greys = Vec::with_capacity(stack.frames.len());
+            for (index, f) in stack.frames.iter().enumerate() {
+                if f.image.width() != camera.width || f.image.height() != camera.height {
+                    return Err(sl_err(StructuredLightError::FrameSize {
+                        position,
+                        index,
+                        width: camera.width,
+                        height: camera.height,
+                        found_width: f.image.width(),
+                        found_height: f.image.height(),
+                    }));
+                }
+                if set.is_none() {
+                    greys.push(image::imageops::grayscale(&f.image).into_raw());
+                }
+            }
+            let t = Instant::now();
+            let (coords, white, white_grey) = match &set {
+                None => {
+                    let coords =
+                        decode_stack(&seq, &used, &greys, &camera, settings, position, &mut map).map_err(sl_err)?;
+                    (coords, &stack.frames[stack.frames.len() - 2].image, greys.swap_remove(greys.len() - 2))
+                }
+                Some(set) => {
+                    let (white, coded) = stack.frames.split_last().ok_or(sl_err(StructuredLightError::FrameCount {
+                        position,
+                        expected: patterns.len(),
+                        found: 0,
+                    }))?;
+                    let normalised;
+                    let captures: Vec<&[u8]> = if let PatternSet::DeBruijn(..) = set {
+                        normalised = albedo_normalised(coded[0].image.as_raw(), white.image.as_raw());
+                        vec![normalised.as_slice()]
+                    } else {
+                        coded.iter().map(|f| f.image.as_raw().as_slice()).collect()
+                    };
+                    let coords = set
+                        .decode(&captures, camera.width as usize, camera.height as usize)
+                        .map_err(|source| sl_err(StructuredLightError::CodesDecode { position, source }))?;
+                    let white_grey = image::imageops::grayscale(&white.image).into_raw();
+                    (coords, &white.image, white_grey)
+                }
+            };
+            summary.decode_s += t.elapsed().as_secs_f64();
+            let columns: Vec<u16> = match &set {
+                None => map.columns().to_vec(),
+                Some(_) => coords
+                    .column
+                    .iter()
+                    .map(|&c| if (0.0..65535.0).contains(&c) { c as u16 } else { u16::MAX })
+                    .collect(),
+            };
+            write_png::<image::Rgb<u8>, u8>(
+                &frames_dir.join(format!("pos_{position:03}_white.png")),
+                camera.width,
+                camera.height,
+                white.as_raw().clone(),
+            )?;
+            write_png::<image::Luma<u16>, u16>(
+                &frames_dir.join(format!("pos_{position:03}_columns.png")),
+                camera.width,
+                camera.height,
+                columns,
+            )?;
+            let t = Instant::now();
+            // Both models in the object frame at this view's angle: the points come out there.
+            let cam = camera.for_turntable_angle(stack.angle_deg);
+            let proj = projector.for_turntable_angle(stack.angle_deg);
+            let range = triangulate(&cam, &proj, &coords, Some(white), &tri)
+                .map_err(|source| sl_err(StructuredLightError::Triangulate { position, source }))?;
+            summary.triangulate_s += t.elapsed().as_secs_f64();
+            summary.decoded.push(range.decoded);
+            summary.outliers += range.outliers;
+            let (mut pts, mut nrm, mut col) = (Vec::new(), Vec::new(), Vec::new());
+            for (p, n, c) in range.valid_points() {
+                pts.push(p);
+                nrm.push(n);
+                col.push(c);
+            }
+            summary.points_per_view.push(pts.len());
+            let view = PointCloud::from_parts(pts, Some(nrm), Some(col))
+                .map_err(|e| sl_err(StructuredLightError::Cloud(e)))?;
+            cloud.extend(view);
+            if let Some(world) = &sim {
+                let (sum, sq, n) = point_errors(&cam, &range, world.scene());
+                err_sum += sum;
+                err_sq += sq;
+                err_n += n;
+            }
+            let t = Instant::now();
+            let depth = fusion_depth(&range, &white_grey, settings.free_below);
+            let stats = tsdf.integrate(&cam, &depth).map_err(|e| sl_err(StructuredLightError::Fusion(e)))?;
+            summary.integrate_s += t.elapsed().as_secs_f64();
+            if let Some(hull) = hull.as_mut() {
+                let t = Instant::now();
+                let mask = Mask::from_fn(camera.width, camera.height, |u, v| {
+                    white_grey[(v * camera.width + u) as usize] >= settings.free_below
+                });
+                hull.add_view(&cam, &mask).map_err(|e| sl_err(StructuredLightError::Hull(e)))?;
+                timings.silhouette += t.elapsed().as_secs_f64();
+            }
+            tracing::debug!(position, decoded = range.decoded, total_points = cloud.len(), "view triangulated");
+            events(ScanEvent::ViewProcessed { position, occupied: stats.near_surface });
+            Ok(())
+        },
+    )?;
+    timings.capture = capture_s;
+    timings.carve = summary.decode_s + summary.triangulate_s + summary.integrate_s;
+    let views = summary.decoded.len();
+    let t = Instant::now();
+    summary.merged_outliers = cloud
+        .remove_statistical_outliers(settings.outlier_neighbours, settings.outlier_std_ratio)
+        .map_err(|e| sl_err(StructuredLightError::Cloud(e)))?;
+    summary.merge_s = t.elapsed().as_secs_f64();
+    summary.points = cloud.len();
+    if err_n > 0 {
+        summary.point_error_mean_m = Some(err_sum / err_n as f64);
+        summary.point_error_rms_m = Some((err_sq / err_n as f64).sqrt());
+    }
+    summary.valid_fraction = if views == 0 {
+        0.0
+    } else {
+        summary.decoded.iter().sum::<usize>() as f64 / (views * summary.pixels_per_view) as f64
+    };
+
+    events(ScanEvent::Stage("mesh"));
+    let t = Instant::now();
+    let occupancy = tsdf.occupancy();
+    let mut mesh = extract_surface(&occupancy, &MeshParams { smooth_radius: recon.mesh.smooth_radius })
+        .map_err(ScanError::Mesh)?;
+    summary.refined_vertices = tsdf.refine_vertices(&mut mesh);
+    timings.mesh = t.elapsed().as_secs_f64();
+
+    events(ScanEvent::Stage("export"));
+    let t = Instant::now();
+    let p = |name: &str| out.join(name);
+    export::write_ply_mesh(&p("model.ply"), &mesh).map_err(ScanError::Export)?;
+    export::write_stl(&p("model.stl"), &mesh).map_err(ScanError::Export)?;
+    export::write_obj(&p("model.obj"), &mesh).map_err(ScanError::Export)?;
+    cloud.write_ply(&p("cloud.ply")).map_err(ScanError::Export)?;
+    timings.export = t.elapsed().as_secs_f64();
+
+    events(ScanEvent::Stage("evaluate"));
+    let mut hull_overlap = None;
+    let ground_truth = sim.as_ref().map(|world| {
+        let scene = world.scene();
+        let truth = Occupancy::from_fn(grid, |p| scene.contains(&p));
+        let overlap = occupancy.iou_and_containment(&truth).map_or((0.0, 0.0), |o| (o.iou, o.containment));
+        hull_overlap = hull.as_ref().and_then(|h| h.occupancy().iou_and_containment(&truth).ok());
+        let true_points: Vec<[f32; 3]> = scene
+            .sample_surface(CHAMFER_SAMPLES, 1)
+            .iter()
+            .map(|(p, _)| [p.x as f32, p.y as f32, p.z as f32])
+            .collect();
+        let chamfer = chamfer_distance(&sample_mesh(&mesh, CHAMFER_SAMPLES, 2), &true_points);
+        let diagonal = scene.bounds().diagonal();
+        GroundTruth {
+            scene: config.sim.as_ref().map_or_else(String::new, |s| s.scene.clone()),
+            iou: overlap.0,
+            containment: overlap.1,
+            voxels: truth.count(),
+            volume_m3: truth.count() as f64 * grid.voxel_size.powi(3),
+            chamfer_m: chamfer.map(|c| c.symmetric_m),
+            chamfer_rel: chamfer.filter(|_| diagonal > 0.0).map(|c| c.symmetric_m / diagonal),
+            colour_error: None,
+        }
+    });
+    if let Some(gt) = &ground_truth {
+        tracing::info!(iou = gt.iou, chamfer_rel = gt.chamfer_rel, "structured light compared with the scene");
+    }
+    let bbox = grid.bbox();
+    let mut report = Report {
+        scanrig_version: env!("CARGO_PKG_VERSION"),
+        source: config.rig.name.clone(),
+        method: recon.method.name(),
+        views,
+        resolution: grid.dims,
+        voxel_size_m: grid.voxel_size,
+        bbox_m: [bbox.min, bbox.max],
+        occupied_voxels: occupancy.count(),
+        volume_m3: occupancy.volume_m3(),
+        mesh_triangles: mesh.triangles.len(),
+        timings_s: timings,
+        reprojection_iou: Vec::new(),
+        reprojection_iou_mean: 0.0,
+        frames: Some(frames),
+        ground_truth,
+        files: ["model.ply", "model.stl", "model.obj", "cloud.ply", "frames/", "report.json"]
+            .map(str::to_owned)
+            .to_vec(),
+        visual_hull: hull.as_ref().map(|h| VisualHull {
+            iou: hull_overlap.map(|o| o.iou),
+            containment: hull_overlap.map(|o| o.containment),
+            voxels: h.occupancy().count(),
+            volume_m3: h.occupancy().volume_m3(),
+            colour_error: None,
+            reprojection_error: None,
+        }),
+        photo: None,
+        shadow_carving: None,
+        depth_fusion: None,
+    };
+    report.timings_s.total = started.elapsed().as_secs_f64();
+    // The report's common fields, plus this method's own section.
+    let mut json = serde_json::to_value(&report).map_err(ScanError::EncodeReport)?;
+    if let Some(obj) = json.as_object_mut() {
+        obj.insert("structured_light".into(), serde_json::to_value(&summary).map_err(ScanError::EncodeReport)?);
+    }
+    let bytes = serde_json::to_vec_pretty(&json).map_err(ScanError::EncodeReport)?;
+    write_atomic(&p("report.json"), &bytes).map_err(ScanError::Export)?;
+    Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{Intrinsics, Pose};
+
+    fn projector(w: u32, h: u32) -> CameraModel {
+        CameraModel {
+            width: w,
+            height: h,
+            intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 16.0, cy: 8.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+            pose: Pose { rotation: nalgebra::Matrix3::identity(), translation: nalgebra::Vector3::zeros() },
+        }
+    }
+
+    #[test]
+    fn column_only_sequences_skip_the_rows_and_still_decode_columns() {
+        let model = projector(32, 16);
+        let mut settings = StructuredLightConfig::default();
+        let (seq, used) = projected_patterns(&model, &settings).expect("patterns");
+        assert_eq!(used.len(), 2 * 5 + 2, "5 column bit pairs, white, black");
+        settings.rows = true;
+        assert_eq!(projected_patterns(&model, &settings).expect("patterns").1.len(), seq.count());
+        settings.rows = false;
+        settings.subpixel = false;
+        // A camera that sees the projector pixel for pixel: each camera pixel decodes to its column.
+        let greys: Vec<Vec<u8>> = used
+            .iter()
+            .map(|&i| seq.render(i).expect("render").iter().map(|&g| if g > 0 { 220 } else { 20 }).collect())
+            .collect();
+        let mut map = ProjectorMap::new();
+        let coords = decode_stack(&seq, &used, &greys, &model, &settings, 0, &mut map).expect("decode");
+        assert!(coords.row.is_none());
+        for x in 0..32 {
+            assert_eq!(coords.get(x, 5), Some((x as f32 + 0.5, None)));
+        }
+    }
+
+    #[test]
+    fn pixels_without_points_are_free_only_on_the_dark_background() {
+        let range = RangeImage { width: 3, height: 1, depth_m: vec![0.3, 0.0, 0.0], ..Default::default() };
+        let d = fusion_depth(&range, &[200, 5, 60], 12);
+        assert_eq!(d[0], 0.3);
+        assert_eq!(d[1], 0.0, "dark under white light: background, free space");
+        assert!(d[2].is_nan(), "lit but no point (shadow, weak code): unknown");
+        assert!(fusion_depth(&range, &[200, 5, 60], 0)[1].is_nan(), "free_below = 0: never free");
+    }
+}
