@@ -167,7 +167,7 @@ mod tests {
         let Some(ProjectorConfig::Sim(p)) = rig.projector.as_mut() else { panic!("the rig has a projector") };
         p.latency_ms = 25.0;
         p.frame_period_ms = 1000.0 / 60.0;
-        let CameraConfig::Sim(c) = &mut rig.camera;
+        let CameraConfig::Sim(c) = &mut rig.camera else { panic!("the rig has a simulated camera") };
         c.buffer_depth = buffers;
         rig.scan.positions = positions;
         rig.scan.lights = Vec::new();

@@ -566,7 +566,9 @@ fn calibrate_lights_command(
     let world = SimWorld::new(scene, lighting);
     let camera = rig.camera.model();
     let CameraConfig::Sim(cam_cfg) = &rig.camera else {
-        return Err(WorkflowError::Unsupported("light calibration renders with a simulated camera; the rig's camera is real"));
+        return Err(WorkflowError::Unsupported(
+            "light calibration renders with a simulated camera; the rig's camera is real",
+        ));
     };
     let rays = RayTable::new(camera);
     let angles: Vec<f64> = (0..views.max(1)).map(|k| k as f64 * 360.0 / views.max(1) as f64).collect();

@@ -150,7 +150,9 @@ mod tests {
     fn a_pattern_appears_only_after_the_latency_at_a_refresh() {
         let rig = small_rig("box");
         let world = crate::sim::SimWorld::from_config(rig.sim.as_ref().expect("sim"), &rig).expect("world");
-        let crate::config::ProjectorConfig::Sim(pc) = rig.projector.as_ref().expect("projector");
+        let Some(crate::config::ProjectorConfig::Sim(pc)) = rig.projector.as_ref() else {
+            panic!("the rig has a simulated projector")
+        };
         let mut pc = pc.clone();
         pc.latency_ms = 30.0;
         pc.frame_period_ms = 7.0;
