@@ -5,7 +5,10 @@
 //! all lasers are merged into one cloud, statistical outliers removed, the cloud thinned to one point
 //! per cube of `thin_voxels` voxels (laser data is dense along a stripe and sparse across stripes),
 //! normals estimated from neighbouring points (oriented towards the cameras that saw each point), and
-//! a closed mesh made from the oriented cloud ([`crate::pipeline::cloud`]).
+//! a closed mesh made from the oriented cloud ([`crate::pipeline::cloud`]). Where the lasers left the
+//! surface unsampled (a part never lit while in view), the mesh is closed by the air the camera saw:
+//! voxels outside the visual hull of evenly spaced laser-off silhouettes, or crossed by the line from
+//! a point to the camera that saw it or to the laser that lit it.
 //!
 //! Outputs: `cloud.ply` (points with normals and colours, object frame, metres), `model.ply` /
 //! `model.stl` / `model.obj` (the mesh, vertex colours from the nearest cloud point), `voxels.ply`
