@@ -80,13 +80,12 @@ fn shipped_rig_scans_the_cup_within_half_a_percent_and_recovers_the_pit() {
     assert!(pit_floor > 100, "{pit_floor} mesh vertices on the pit floor");
 }
 
-/// A convex solid (the box) with one laser and fewer positions at a coarser grid.
-///
-/// KNOWN FAILURE, left visible: measured chamfer_rel 0.0195 (IoU 0.47): the box comes out hollow
-/// (the outside reaches its interior during meshing) and with ledges along its edges, where the
-/// row through a bend of the stripe gives points off the surface. Run it with `--ignored`.
+/// A convex solid (the box) with one laser and fewer positions at a coarser grid. With one laser
+/// a strip of every side face (about 11 to 14 mm wide next to one vertical edge) is never both lit
+/// and in view; the meshing closes it with the air the camera saw (visual hull, lines of sight)
+/// instead of letting the outside flow into the box through it.
 #[test]
-#[ignore = "known failure: box chamfer_rel 0.0195 > 0.005 (hollow box, ledges at edges); see the doc comment"]
+#[cfg_attr(debug_assertions, ignore = "heavy: run with --release")]
 fn one_laser_scans_the_box_within_half_a_percent() {
     let dir = tempfile::tempdir().expect("tempdir");
     let rig = derived_rig(

@@ -67,6 +67,14 @@ pub enum CloudError {
     /// No point of the cloud lies in the grid, so there is no surface to mesh.
     #[error("no point of the cloud lies inside the grid")]
     NoPointsInGrid,
+    /// A free-space mask does not have one entry per voxel of the grid.
+    #[error("free-space mask has {given} entries for a grid of {expected} voxels")]
+    FreeSpaceSize {
+        /// Entries given.
+        given: usize,
+        /// Voxels in the grid.
+        expected: usize,
+    },
     /// Surface extraction failed.
     #[error("surface extraction failed")]
     Mesh(#[from] MeshError),
@@ -753,6 +761,51 @@ pub struct CloudMeshStats {
     pub refined_vertices: u64,
 }
 
+/// Mark in `free` (one entry per voxel of `grid`, see [`VoxelGrid::index`]) the voxels crossed by the
+/// line from each point towards a viewpoint whose line to the point is known to be clear (the camera
+/// that saw it, or the light source that lit it): `towards[i]` is the unit direction from
+/// `points[i]` to that viewpoint (the cloud's frame). The first `skip_m`
+/// metres next to the point are left alone (the point's own noise); the ray is followed, in steps of
+/// half a voxel edge, until it leaves the grid, so the viewpoints must lie outside the grid. Non-finite points or directions are skipped.
+pub fn mark_lines_of_sight(
+    grid: &VoxelGrid,
+    points: &[[f32; 3]],
+    towards: &[[f32; 3]],
+    skip_m: f64,
+    free: &mut [bool],
+) -> Result<(), CloudError> {
+    if free.len() != grid.len() {
+        return Err(CloudError::FreeSpaceSize { given: free.len(), expected: grid.len() });
+    }
+    if towards.len() != points.len() {
+        return Err(CloudError::AttributeLength { attribute: "normals", len: towards.len(), points: points.len() });
+    }
+    let vs = grid.voxel_size;
+    let step = 0.5 * vs;
+    let dims = grid.dims;
+    for (p, d) in points.iter().zip(towards) {
+        let p = p.map(f64::from);
+        let d = d.map(f64::from);
+        if !p.iter().chain(&d).all(|x| x.is_finite()) {
+            continue;
+        }
+        let mut t = skip_m.max(0.0);
+        // The ray leaves the grid's box for good once it is outside and moving away on some axis.
+        loop {
+            let q = [0, 1, 2].map(|a| (p[a] + t * d[a] - grid.origin[a]) / vs);
+            let leaving = (0..3).any(|a| (q[a] < 0.0 && d[a] <= 0.0) || (q[a] >= dims[a] as f64 && d[a] >= 0.0));
+            if leaving || t > 1e3 {
+                break;
+            }
+            if (0..3).all(|a| q[a] >= 0.0 && q[a] < dims[a] as f64) {
+                free[grid.index(q[0] as usize, q[1] as usize, q[2] as usize)] = true;
+            }
+            t += step;
+        }
+    }
+    Ok(())
+}
+
 /// The signed distance field of an oriented cloud (module docs), metres, positive outside.
 struct SignedDistance {
     index: KnnIndex,
@@ -800,6 +853,29 @@ pub fn solid_and_mesh_from_cloud(
     grid: &VoxelGrid,
     params: &CloudMeshParams,
 ) -> Result<(Occupancy, TriangleMesh, CloudMeshStats), CloudError> {
+    solid_and_mesh_from_cloud_with_free_space(cloud, grid, params, None)
+}
+
+/// As [`solid_and_mesh_from_cloud`], with voxels known to be empty: `free[grid.index(i, j, k)]` is
+/// true for a voxel seen to be air (outside the silhouettes' visual hull, or crossed by a line of
+/// sight to a surface point). Beyond the band, a free voxel is outside whatever the nearest tangent
+/// plane says, and the outer air spreads into the unlabelled voxels (farther than
+/// `hoppe_reach_voxels` from every point) only through free ones: a patch of the surface the scan
+/// never sampled, wider than the Hoppe reach, then no longer lets the outside into the object; the
+/// unseen patch is closed by the free space around it. `None` behaves as
+/// [`solid_and_mesh_from_cloud`] (every unlabelled voxel is passable).
+pub fn solid_and_mesh_from_cloud_with_free_space(
+    cloud: &PointCloud,
+    grid: &VoxelGrid,
+    params: &CloudMeshParams,
+    free: Option<&[bool]>,
+) -> Result<(Occupancy, TriangleMesh, CloudMeshStats), CloudError> {
+    if let Some(f) = free {
+        if f.len() != grid.len() {
+            return Err(CloudError::FreeSpaceSize { given: f.len(), expected: grid.len() });
+        }
+    }
+    let passable = |idx: usize| free.is_none_or(|f| f[idx]);
     check_k(params.k)?;
     let normals = cloud.normals().ok_or(CloudError::NoNormals)?;
     if !(params.band_voxels.is_finite() && params.band_voxels >= 1.0) {
@@ -959,7 +1035,7 @@ pub fn solid_and_mesh_from_cloud(
         for j in 0..dims[1] {
             for i in 0..dims[0] {
                 let idx = grid.index(i, j, k);
-                if label[idx] == 0 && on_seeded_face(grid, params, i, j, k) {
+                if label[idx] == 0 && passable(idx) && on_seeded_face(grid, params, i, j, k) {
                     label[idx] = 1;
                     queue.push_back(idx);
                 }
@@ -969,7 +1045,7 @@ pub fn solid_and_mesh_from_cloud(
     while let Some(idx) = queue.pop_front() {
         let [i, j, k] = unravel(idx);
         let mut visit = |n: usize| {
-            if label[n] == 0 {
+            if label[n] == 0 && passable(n) {
                 label[n] = 1;
                 queue.push_back(n);
             }
@@ -995,6 +1071,15 @@ pub fn solid_and_mesh_from_cloud(
     }
     for l in label.iter_mut().filter(|l| **l == 0) {
         *l = -1;
+    }
+    // Air seen by the cameras overrides the tangent planes off the band (e.g. the plane of a face
+    // extended past the edge next to an unsampled patch of the neighbouring face).
+    if let Some(f) = free {
+        for (idx, l) in label.iter_mut().enumerate() {
+            if f[idx] && !in_band[idx] {
+                *l = 1;
+            }
+        }
     }
     let flipped = drop_small_components(&mut label, grid, params);
     let occupancy = Occupancy::from_index_fn(*grid, |i, j, k| label[grid.index(i, j, k)] < 0);
@@ -1202,5 +1287,87 @@ mod tests {
         // Without normals there is nothing to mesh.
         let bare = PointCloud::from_points(cloud.points().to_vec());
         assert!(matches!(mesh_from_cloud(&bare, &grid, &CloudMeshParams::default()), Err(CloudError::NoNormals)));
+    }
+
+    /// Points on the faces of the 40 mm cube `|x|, |y| <= 20 mm, 0 <= z <= 40 mm` (floor face
+    /// excluded: it stands on the table) with their outward normals, about one per millimetre, except
+    /// a 28 mm wide strip of the `+x` face that the scan never saw.
+    fn cube_with_unseen_strip() -> PointCloud {
+        let (h, n) = (0.02f32, 41);
+        let (mut pts, mut nrm) = (Vec::new(), Vec::new());
+        for a in 0..n {
+            for b in 0..n {
+                let (u, v) = (-h + 2.0 * h * a as f32 / (n - 1) as f32, 2.0 * h * b as f32 / (n - 1) as f32);
+                let (s, t) = (u, v - h);
+                pts.push([s, t, 2.0 * h]);
+                nrm.push([0.0, 0.0, 1.0]);
+                pts.push([-h, u, v]);
+                nrm.push([-1.0, 0.0, 0.0]);
+                if u < -0.008 {
+                    pts.push([h, u, v]);
+                    nrm.push([1.0, 0.0, 0.0]);
+                }
+                pts.push([u, -h, v]);
+                nrm.push([0.0, -1.0, 0.0]);
+                pts.push([u, h, v]);
+                nrm.push([0.0, 1.0, 0.0]);
+            }
+        }
+        PointCloud::from_parts(pts, Some(nrm), None).expect("one normal per point")
+    }
+
+    #[test]
+    fn free_space_closes_an_unseen_strip_wider_than_the_hoppe_reach() {
+        let cloud = cube_with_unseen_strip();
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.03, -0.03, 0.0], max: [0.03, 0.03, 0.05] }, 60);
+        let params = CloudMeshParams::default();
+        let cube = 0.04f64.powi(3);
+        // Without free space the outer air flows in through the strip (8 mm reach, 28 mm strip):
+        // only a shell remains.
+        let (open, _, _) = solid_and_mesh_from_cloud(&cloud, &grid, &params).expect("mesh");
+        assert!(open.volume_m3() < 0.8 * cube, "{} vs {cube}", open.volume_m3());
+        // The air around the cube as a visual hull would give it (voxel centres outside the cube).
+        let d = grid.dims;
+        let free: Vec<bool> = (0..grid.len())
+            .map(|idx| {
+                let c = grid.centre(idx % d[0], (idx / d[0]) % d[1], idx / (d[0] * d[1]));
+                c.x.abs() > 0.02 || c.y.abs() > 0.02 || c.z > 0.04
+            })
+            .collect();
+        let (solid, mesh, _) =
+            solid_and_mesh_from_cloud_with_free_space(&cloud, &grid, &params, Some(&free)).expect("mesh");
+        assert_eq!(mesh.open_or_misoriented_edges(), 0);
+        assert!((solid.volume_m3() / cube - 1.0).abs() < 0.03, "{} vs {cube}", solid.volume_m3());
+        assert!((mesh.signed_volume() / cube - 1.0).abs() < 0.03, "{} vs {cube}", mesh.signed_volume());
+        let off = |v: &[f32; 3]| (v[0].abs() - 0.02).max(v[1].abs() - 0.02).max(v[2] - 0.04).max(-v[2]).abs();
+        // The unseen strip is flat to within a voxel; next to the seen faces' edges the band keeps
+        // their planes' sign (free space does not override the band), up to 2 voxels off.
+        let far = mesh.vertices.iter().filter(|v| off(v) > 0.001).count();
+        let worst = mesh.vertices.iter().map(off).fold(0.0f32, f32::max);
+        assert!(far * 20 < mesh.vertices.len() && worst < 0.0025, "{far} of {}, worst {worst} m", mesh.vertices.len());
+        let strip = |v: &&[f32; 3]| v[0] > 0.019 && v[1] > -0.004 && v[1] < 0.016 && v[2] > 0.004 && v[2] < 0.036;
+        let in_strip: Vec<f32> = mesh.vertices.iter().filter(strip).map(off).collect();
+        assert!(in_strip.len() > 500 && in_strip.iter().all(|&e| e < 0.001), "{} strip vertices", in_strip.len());
+        // A mask of the wrong size is refused.
+        assert!(matches!(
+            solid_and_mesh_from_cloud_with_free_space(&cloud, &grid, &params, Some(&free[1..])),
+            Err(CloudError::FreeSpaceSize { .. })
+        ));
+    }
+
+    #[test]
+    fn lines_of_sight_mark_the_air_between_point_and_viewpoint() {
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [0.01; 3] }, 10);
+        let mut free = vec![false; grid.len()];
+        // A point in voxel (5, 5, 2) seen from straight above; the first 2 mm are skipped.
+        mark_lines_of_sight(&grid, &[[0.0055, 0.0055, 0.0025]], &[[0.0, 0.0, 1.0]], 0.002, &mut free).expect("sizes");
+        let marked: Vec<usize> = (0..10).filter(|&k| free[grid.index(5, 5, k)]).collect();
+        assert_eq!(marked, vec![4, 5, 6, 7, 8, 9]);
+        assert_eq!(free.iter().filter(|&&f| f).count(), 6);
+        // Non-finite input is skipped; mismatched lengths are errors.
+        mark_lines_of_sight(&grid, &[[f32::NAN; 3]], &[[0.0, 0.0, 1.0]], 0.0, &mut free).expect("sizes");
+        assert_eq!(free.iter().filter(|&&f| f).count(), 6);
+        assert!(mark_lines_of_sight(&grid, &[[0.0; 3]], &[], 0.0, &mut free).is_err());
+        assert!(mark_lines_of_sight(&grid, &[], &[], 0.0, &mut free[1..]).is_err());
     }
 }

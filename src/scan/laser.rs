@@ -5,7 +5,10 @@
 //! all lasers are merged into one cloud, statistical outliers removed, the cloud thinned to one point
 //! per cube of `thin_voxels` voxels (laser data is dense along a stripe and sparse across stripes),
 //! normals estimated from neighbouring points (oriented towards the cameras that saw each point), and
-//! a closed mesh made from the oriented cloud ([`crate::pipeline::cloud`]).
+//! a closed mesh made from the oriented cloud ([`crate::pipeline::cloud`]). Where the lasers left the
+//! surface unsampled (a part never lit while in view), the mesh is closed by the air the camera saw:
+//! voxels outside the visual hull of evenly spaced laser-off silhouettes, or crossed by the line from
+//! a point to the camera that saw it or to the laser that lit it.
 //!
 //! Outputs: `cloud.ply` (points with normals and colours, object frame, metres), `model.ply` /
 //! `model.stl` / `model.obj` (the mesh, vertex colours from the nearest cloud point), `voxels.ply`
@@ -29,11 +32,12 @@ use crate::acquisition::{self, CancelToken, LaserView};
 use crate::config::RigConfig;
 use crate::devices::build_rig;
 use crate::geometry::{turntable_rotation, Aabb, CameraModel, VoxelGrid};
+use crate::pipeline::cloud::{mark_lines_of_sight, solid_and_mesh_from_cloud_with_free_space};
 use crate::pipeline::export::{self, write_atomic};
 use crate::pipeline::laser::{detect_stripe, triangulate_peaks, LaserError, Plane, StripeParams};
 use crate::pipeline::{
-    chamfer_distance, extract_silhouette, reprojection_iou, sample_mesh, solid_and_mesh_from_cloud, CloudError,
-    CloudMeshParams, CloudMeshStats, KnnIndex, Mask, Occupancy, PointCloud, View,
+    carve_dense, chamfer_distance, extract_silhouette, reprojection_iou, sample_mesh, CloudError, CloudMeshParams,
+    CloudMeshStats, KnnIndex, Mask, Occupancy, PointCloud, View,
 };
 
 /// Surface samples per side for the Chamfer distance.
@@ -126,6 +130,8 @@ struct Accumulated {
     points: Vec<[f32; 3]>,
     colors: Vec<[u8; 3]>,
     viewpoints: Vec<[f32; 3]>,
+    /// The exit point of the laser whose light made each point.
+    light_sources: Vec<[f32; 3]>,
 }
 
 fn write_png(dir: &Path, name: String, image: &RgbImage) -> Result<(), ScanError> {
@@ -164,10 +170,12 @@ pub fn run_laser_scan(
     let configured = config.lights.as_ref().map(|l| l.lasers.as_slice()).unwrap_or(&[]);
     let lasers = lc.selected(configured.len());
     let mut colours = Vec::with_capacity(lasers.len());
+    let mut laser_origins = Vec::with_capacity(lasers.len());
     let mut laser_planes = Vec::with_capacity(lasers.len());
     for &index in &lasers {
         let l = configured.get(index).ok_or(err(LaserScanError::UnknownLaser { index, count: configured.len() }))?;
         colours.push(l.colour);
+        laser_origins.push(Vector3::from(l.origin_m));
         let plane = Plane::through(l.origin_m, l.plane_normal)
             .map_err(|source| err(LaserScanError::Stripe { index, position: 0, source }))?;
         laser_planes.push(plane);
@@ -223,6 +231,8 @@ pub fn run_laser_scan(
                 let peaks = detect_stripe(&view.off.image, &frame.image, colours[k], &stripe)
                     .map_err(|source| err(LaserScanError::Stripe { index: *index, position: view.position, source }))?;
                 per_laser[k].0 += peaks.len() as u64;
+                let source = to_obj * laser_origins[k];
+                let source = [source.x as f32, source.y as f32, source.z as f32];
                 for (p, pk) in triangulate_peaks(&camera, &laser_planes[k], &peaks) {
                     let q = to_obj * p;
                     if !inside(&bbox, &q) {
@@ -233,6 +243,7 @@ pub fn run_laser_scan(
                     acc.points.push([q.x as f32, q.y as f32, q.z as f32]);
                     acc.colors.push(c);
                     acc.viewpoints.push(eye);
+                    acc.light_sources.push(source);
                     per_laser[k].1 += 1;
                 }
             }
@@ -257,21 +268,53 @@ pub fn run_laser_scan(
     let t = Instant::now();
     let cloud_err = |e| err(LaserScanError::Cloud(e));
     let merged_points = acc.points.len();
-    let Accumulated { points, colors, viewpoints } = acc;
+    let Accumulated { points, colors, viewpoints, light_sources } = acc;
     // Until the real normals are estimated, each point's "normal" is the unit vector towards the
     // camera that saw it: thinning averages it with the rest of its cube, and it then orients the
     // estimated normal.
-    let towards_camera: Vec<[f32; 3]> = points
-        .iter()
-        .zip(&viewpoints)
-        .map(|(p, e)| {
-            let d = Vector3::from(*e) - Vector3::from(*p);
-            let d = d.try_normalize(0.0).unwrap_or(Vector3::z());
-            [d.x, d.y, d.z]
-        })
-        .collect();
+    let towards = |sources: &[[f32; 3]]| -> Vec<[f32; 3]> {
+        points
+            .iter()
+            .zip(sources)
+            .map(|(p, e)| {
+                let d = Vector3::from(*e) - Vector3::from(*p);
+                let d = d.try_normalize(0.0).unwrap_or(Vector3::z());
+                [d.x, d.y, d.z]
+            })
+            .collect()
+    };
+    let towards_camera = towards(&viewpoints);
+    let mut towards_laser = towards(&light_sources);
     let mut cloud = PointCloud::from_parts(points, Some(towards_camera), Some(colors)).map_err(cloud_err)?;
-    let outliers_removed = cloud.remove_statistical_outliers(lc.neighbours, lc.outlier_std_ratio).map_err(cloud_err)?;
+    let keep = cloud.inlier_mask(lc.neighbours, lc.outlier_std_ratio).map_err(cloud_err)?;
+    let merged = cloud.len();
+    cloud.retain_mask(&keep);
+    let outliers_removed = merged - cloud.len();
+    let mut kept = keep.iter();
+    towards_laser.retain(|_| kept.next().copied().unwrap_or(false));
+    // Air seen by the camera: outside the visual hull of the kept silhouettes, or on a line of sight
+    // from a point to the camera or to the laser that lit it (the lasers' light planes hold the
+    // turntable axis, so their light sweeps the air of a concavity that the oblique lines of sight
+    // to the camera miss). The meshing uses it where the lasers left the surface unsampled.
+    let carving_views: Vec<View<'_>> =
+        silhouettes.iter().map(|(camera, mask)| View { camera: *camera, mask }).collect();
+    let mut free: Vec<bool> = match carve_dense(&grid, &carving_views) {
+        Ok(hull) => (0..grid.len())
+            .map(|idx| {
+                let d = grid.dims;
+                !hull.get(idx % d[0], (idx / d[0]) % d[1], idx / (d[0] * d[1]))
+            })
+            .collect(),
+        Err(e) => {
+            tracing::warn!(error = %e, "no visual hull for the laser meshing; lines of sight only");
+            vec![false; grid.len()]
+        }
+    };
+    if let Some(towards) = cloud.normals() {
+        let skip_m = (CloudMeshParams::default().band_voxels + 1.0) * grid.voxel_size;
+        mark_lines_of_sight(&grid, cloud.points(), towards, skip_m, &mut free).map_err(cloud_err)?;
+        mark_lines_of_sight(&grid, cloud.points(), &towards_laser, skip_m, &mut free).map_err(cloud_err)?;
+    }
     if lc.thin_voxels > 0.0 {
         cloud = cloud.voxel_downsample(lc.thin_voxels * grid.voxel_size).map_err(cloud_err)?;
     }
@@ -285,7 +328,8 @@ pub fn run_laser_scan(
     events(ScanEvent::Stage("mesh"));
     let t = Instant::now();
     let mesh_params = CloudMeshParams { k: lc.mesh_neighbours, ..CloudMeshParams::default() };
-    let (solid, mut mesh, mesh_stats) = solid_and_mesh_from_cloud(&cloud, &grid, &mesh_params).map_err(cloud_err)?;
+    let (solid, mut mesh, mesh_stats) =
+        solid_and_mesh_from_cloud_with_free_space(&cloud, &grid, &mesh_params, Some(&free)).map_err(cloud_err)?;
     // Vertex colours: the nearest cloud point's.
     if let Some(cc) = cloud.colors() {
         let index = KnnIndex::new(cloud.points());
@@ -313,8 +357,6 @@ pub fn run_laser_scan(
     timings.export = t.elapsed().as_secs_f64();
 
     events(ScanEvent::Stage("evaluate"));
-    let carving_views: Vec<View<'_>> =
-        silhouettes.iter().map(|(camera, mask)| View { camera: *camera, mask }).collect();
     let reprojection: Vec<f64> =
         reprojection_iou(&solid, &carving_views).into_iter().map(|v| v.unwrap_or(0.0)).collect();
     let reprojection_mean =
