@@ -10,20 +10,14 @@
 use std::path::Path;
 use std::time::Instant;
 
-use super::report::{GroundTruth, Report, Timings, VisualHull};
+use super::report::{mesh_ground_truth, Report, Timings, VisualHull};
 use super::{ScanError, ScanEvent};
 use crate::acquisition::{self, CancelToken, DepthView};
 use crate::config::{DepthCameraConfig, RigConfig};
 use crate::devices::build_rig;
 use crate::geometry::{CameraModel, VoxelGrid};
 use crate::pipeline::export::{self, write_atomic};
-use crate::pipeline::{
-    chamfer_distance, extract_surface, reprojection_iou, sample_mesh, FusionParams, Mask, MeshParams, Occupancy,
-    SpaceCarver, Tsdf, View,
-};
-
-/// Surface samples per side for the Chamfer distance.
-const CHAMFER_SAMPLES: usize = 60_000;
+use crate::pipeline::{extract_surface, reprojection_iou, FusionParams, Mask, MeshParams, SpaceCarver, Tsdf, View};
 
 /// What the depth fusion did, for `report.json`.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -157,30 +151,18 @@ pub fn run_depth_scan(
         reprojection_iou(&occupancy, &carving_views).into_iter().map(|v| v.unwrap_or(0.0)).collect();
     let reprojection_mean =
         if reprojection.is_empty() { 0.0 } else { reprojection.iter().sum::<f64>() / reprojection.len() as f64 };
-    let voxel_volume = grid.voxel_size.powi(3);
+    let _voxel_volume = grid.voxel_size.powi(3);
     let mut hull_overlap = None;
     let ground_truth = sim.as_ref().map(|world| {
-        let scene = world.scene();
-        let truth = Occupancy::from_fn(grid, |p| scene.contains(&p));
-        let overlap = occupancy.iou_and_containment(&truth).map_or((0.0, 0.0), |o| (o.iou, o.containment));
+        let (gt, truth) = mesh_ground_truth(
+            world.scene(),
+            config.sim.as_ref().map_or("", |s| s.scene.as_str()),
+            grid,
+            &occupancy,
+            &mesh,
+        );
         hull_overlap = hull_occ.iou_and_containment(&truth).ok();
-        let true_points: Vec<[f32; 3]> = scene
-            .sample_surface(CHAMFER_SAMPLES, 1)
-            .iter()
-            .map(|(p, _)| [p.x as f32, p.y as f32, p.z as f32])
-            .collect();
-        let chamfer = chamfer_distance(&sample_mesh(&mesh, CHAMFER_SAMPLES, 2), &true_points);
-        let diagonal = scene.bounds().diagonal();
-        GroundTruth {
-            scene: config.sim.as_ref().map_or_else(String::new, |s| s.scene.clone()),
-            iou: overlap.0,
-            containment: overlap.1,
-            voxels: truth.count(),
-            volume_m3: truth.count() as f64 * voxel_volume,
-            chamfer_m: chamfer.map(|c| c.symmetric_m),
-            chamfer_rel: chamfer.filter(|_| diagonal > 0.0).map(|c| c.symmetric_m / diagonal),
-            colour_error: None,
-        }
+        gt
     });
     if let Some(gt) = &ground_truth {
         tracing::info!(iou = gt.iou, chamfer_rel = gt.chamfer_rel, "depth fusion compared with the scene");

@@ -26,7 +26,7 @@ use std::time::Instant;
 use image::RgbImage;
 use nalgebra::Vector3;
 
-use super::report::{GroundTruth, Report, Timings};
+use super::report::{mesh_ground_truth, Report, Timings};
 use super::{silhouette_params, OutputDir, ScanError, ScanEvent};
 use crate::acquisition::{self, CancelToken, LaserView};
 use crate::config::RigConfig;
@@ -36,12 +36,10 @@ use crate::pipeline::cloud::{mark_lines_of_sight, solid_and_mesh_from_cloud_with
 use crate::pipeline::export::{self, write_atomic};
 use crate::pipeline::laser::{detect_stripe, triangulate_peaks, LaserError, Plane, StripeParams};
 use crate::pipeline::{
-    carve_dense, chamfer_distance, extract_silhouette, reprojection_iou, sample_mesh, CloudError, CloudMeshParams,
-    CloudMeshStats, KnnIndex, Mask, Occupancy, PointCloud, View,
+    carve_dense, extract_silhouette, reprojection_iou, CloudError, CloudMeshParams, CloudMeshStats, KnnIndex, Mask,
+    PointCloud, View,
 };
 
-/// Surface samples per side for the Chamfer distance.
-const CHAMFER_SAMPLES: usize = 60_000;
 /// Views whose silhouettes are kept for the re-projection check (evenly spaced over the turn).
 const REPROJECTION_VIEWS: usize = 24;
 
@@ -362,26 +360,7 @@ pub fn run_laser_scan(
     let reprojection_mean =
         if reprojection.is_empty() { 0.0 } else { reprojection.iter().sum::<f64>() / reprojection.len() as f64 };
     let ground_truth = sim.as_ref().map(|world| {
-        let scene = world.scene();
-        let truth = Occupancy::from_fn(grid, |p| scene.contains(&p));
-        let overlap = solid.iou_and_containment(&truth).map_or((0.0, 0.0), |o| (o.iou, o.containment));
-        let true_points: Vec<[f32; 3]> = scene
-            .sample_surface(CHAMFER_SAMPLES, 1)
-            .iter()
-            .map(|(p, _)| [p.x as f32, p.y as f32, p.z as f32])
-            .collect();
-        let chamfer = chamfer_distance(&sample_mesh(&mesh, CHAMFER_SAMPLES, 2), &true_points);
-        let diagonal = scene.bounds().diagonal();
-        GroundTruth {
-            scene: config.sim.as_ref().map_or_else(String::new, |s| s.scene.clone()),
-            iou: overlap.0,
-            containment: overlap.1,
-            voxels: truth.count(),
-            volume_m3: truth.volume_m3(),
-            chamfer_m: chamfer.map(|c| c.symmetric_m),
-            chamfer_rel: chamfer.filter(|_| diagonal > 0.0).map(|c| c.symmetric_m / diagonal),
-            colour_error: None,
-        }
+        mesh_ground_truth(world.scene(), config.sim.as_ref().map_or("", |s| s.scene.as_str()), grid, &solid, &mesh).0
     });
     if let Some(gt) = &ground_truth {
         tracing::info!(iou = gt.iou, chamfer_rel = gt.chamfer_rel, "laser scan compared with the scene");

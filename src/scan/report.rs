@@ -151,3 +151,37 @@ pub struct GroundTruth {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub colour_error: Option<f64>,
 }
+
+/// Area-uniform samples per surface for the Chamfer distance of the mesh-producing flows.
+const CHAMFER_SAMPLES: usize = 60_000;
+
+/// Compare a flow's result with the simulated scene: `solid` (its voxels on `grid`) for IoU and
+/// containment, `mesh` (object frame, metres) against samples of the true surface for the symmetric
+/// Chamfer distance. Returns the comparison and the truth voxels (for comparing other results, such as
+/// a visual hull, with the same truth). `scene_name` is the rig's `[sim] scene`.
+pub fn mesh_ground_truth(
+    scene: &crate::sim::Scene,
+    scene_name: &str,
+    grid: crate::geometry::VoxelGrid,
+    solid: &crate::pipeline::Occupancy,
+    mesh: &crate::pipeline::TriangleMesh,
+) -> (GroundTruth, crate::pipeline::Occupancy) {
+    use crate::pipeline::{chamfer_distance, sample_mesh};
+    let truth = crate::pipeline::Occupancy::from_fn(grid, |p| scene.contains(&p));
+    let overlap = solid.iou_and_containment(&truth).map_or((0.0, 0.0), |o| (o.iou, o.containment));
+    let true_points: Vec<[f32; 3]> =
+        scene.sample_surface(CHAMFER_SAMPLES, 1).iter().map(|(p, _)| [p.x as f32, p.y as f32, p.z as f32]).collect();
+    let chamfer = chamfer_distance(&sample_mesh(mesh, CHAMFER_SAMPLES, 2), &true_points);
+    let diagonal = scene.bounds().diagonal();
+    let gt = GroundTruth {
+        scene: scene_name.to_owned(),
+        iou: overlap.0,
+        containment: overlap.1,
+        voxels: truth.count(),
+        volume_m3: truth.volume_m3(),
+        chamfer_m: chamfer.map(|c| c.symmetric_m),
+        chamfer_rel: chamfer.filter(|_| diagonal > 0.0).map(|c| c.symmetric_m / diagonal),
+        colour_error: None,
+    };
+    (gt, truth)
+}

@@ -25,7 +25,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use super::report::{GroundTruth, Report, Timings, VisualHull};
+use super::report::{mesh_ground_truth, Report, Timings, VisualHull};
 use super::{ScanError, ScanEvent};
 use crate::acquisition::{self, CancelToken, PatternStack};
 use crate::config::structured_light::{exposure_frames, PhaseUnwrapping, StripeCoding, StructuredLightConfig};
@@ -42,12 +42,9 @@ use crate::pipeline::structured_light::{
     PatternError, PatternSet, ProjectorCoords, ProjectorMap, RangeImage, TriangulateError, TriangulationParams,
 };
 use crate::pipeline::{
-    chamfer_distance, extract_surface, sample_mesh, CarveError, CloudError, DepthFusionError, FusionParams, Mask,
-    MeshParams, Occupancy, PointCloud, SpaceCarver, Tsdf,
+    extract_surface, CarveError, CloudError, DepthFusionError, FusionParams, Mask, MeshParams, PointCloud, SpaceCarver,
+    Tsdf,
 };
-
-/// Surface samples per side for the Chamfer distance.
-const CHAMFER_SAMPLES: usize = 60_000;
 
 /// Why the structured-light part of a scan failed.
 #[derive(Debug, thiserror::Error)]
@@ -708,27 +705,15 @@ pub fn run_structured_light_scan(
     events(ScanEvent::Stage("evaluate"));
     let mut hull_overlap = None;
     let ground_truth = sim.as_ref().map(|world| {
-        let scene = world.scene();
-        let truth = Occupancy::from_fn(grid, |p| scene.contains(&p));
-        let overlap = occupancy.iou_and_containment(&truth).map_or((0.0, 0.0), |o| (o.iou, o.containment));
+        let (gt, truth) = mesh_ground_truth(
+            world.scene(),
+            config.sim.as_ref().map_or("", |s| s.scene.as_str()),
+            grid,
+            &occupancy,
+            &mesh,
+        );
         hull_overlap = hull.as_ref().and_then(|h| h.occupancy().iou_and_containment(&truth).ok());
-        let true_points: Vec<[f32; 3]> = scene
-            .sample_surface(CHAMFER_SAMPLES, 1)
-            .iter()
-            .map(|(p, _)| [p.x as f32, p.y as f32, p.z as f32])
-            .collect();
-        let chamfer = chamfer_distance(&sample_mesh(&mesh, CHAMFER_SAMPLES, 2), &true_points);
-        let diagonal = scene.bounds().diagonal();
-        GroundTruth {
-            scene: config.sim.as_ref().map_or_else(String::new, |s| s.scene.clone()),
-            iou: overlap.0,
-            containment: overlap.1,
-            voxels: truth.count(),
-            volume_m3: truth.count() as f64 * grid.voxel_size.powi(3),
-            chamfer_m: chamfer.map(|c| c.symmetric_m),
-            chamfer_rel: chamfer.filter(|_| diagonal > 0.0).map(|c| c.symmetric_m / diagonal),
-            colour_error: None,
-        }
+        gt
     });
     if let Some(gt) = &ground_truth {
         tracing::info!(iou = gt.iou, chamfer_rel = gt.chamfer_rel, "structured light compared with the scene");
