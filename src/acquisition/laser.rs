@@ -4,14 +4,12 @@
 //! end, also after an error or cancellation.
 
 use std::sync::mpsc::SyncSender;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use super::{
-    capture_fresh, move_and_settle, run_then_park, AcquisitionError, AcquisitionSummary, CancelToken, Progress,
-    SequenceTracker, Stage,
-};
+use super::per_light::one_at_a_time_steps;
+use super::{run_then_park, AcquisitionError, AcquisitionSummary, CancelToken, Progress};
 use crate::config::ScanPlan;
-use crate::devices::{DeviceError, Frame, Rig};
+use crate::devices::{DeviceError, Frame, LightArray, Rig};
 
 /// The frames of one turntable position of the laser sequence.
 #[derive(Debug, Clone)]
@@ -50,69 +48,25 @@ fn laser_steps(
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
-    let total = plan.positions as usize;
-    let move_timeout = Duration::from_millis(plan.move_timeout_ms);
-    let capture_timeout = Duration::from_millis(plan.capture_timeout_ms);
-    let mut summary = AcquisitionSummary::default();
-    let mut sequence = SequenceTracker::default();
-
-    for position in 0..total {
-        if cancel.is_cancelled() {
-            return Err(AcquisitionError::Cancelled { completed: position, total });
-        }
-        let span = tracing::info_span!("position", position, total);
-        let _enter = span.enter();
-        let device = |step: &'static str| move |source| AcquisitionError::Device { step, position, source };
-
-        let angle_deg = move_and_settle(rig, plan, position, progress)?;
-        let mut stale_here = 0u32;
-        let mut off = None;
-        let mut on = Vec::with_capacity(lasers.len());
-        // `None` = every laser off, then each laser alone.
-        for only in std::iter::once(None).chain(lasers.iter().map(|&l| Some(l))) {
-            if cancel.is_cancelled() {
-                return Err(AcquisitionError::Cancelled { completed: position, total });
-            }
-            progress(&Progress { step: position, total, stage: Stage::Lighting });
-            let array = rig.lights.as_mut().ok_or_else(|| {
-                device("switching lasers")(DeviceError::Unsupported {
-                    device: "lights".into(),
-                    operation: "switching lasers (the rig has no light array)",
-                })
-            })?;
-            if position == 0 && only.is_none() {
-                for i in 0..array.light_count() {
-                    let level = if plan.lights.contains(&i) { 1.0 } else { 0.0 };
-                    array.set_light(i, level, move_timeout).map_err(device("switching lights"))?;
-                }
-            }
-            if only.is_some_and(|l| l >= array.laser_count()) {
-                return Err(device("switching lasers")(DeviceError::Unsupported {
-                    device: "lights".into(),
-                    operation: "switching a laser the light array does not have",
-                }));
-            }
-            for i in 0..array.laser_count() {
-                array.set_laser(i, Some(i) == only, move_timeout).map_err(device("switching lasers"))?;
-            }
-            // The switch is done: only frames exposed from now on show this laser state.
-            let changed_at = Instant::now();
-            progress(&Progress { step: position, total, stage: Stage::Capturing });
-            let (frame, stale) =
-                capture_fresh(rig, changed_at, capture_timeout, plan.max_stale_frames, position, &mut sequence)?;
-            stale_here += stale;
-            tracing::debug!(sequence = frame.sequence, angle_deg, laser = ?only, stale, "captured");
-            match only {
-                None => off = Some(frame),
-                Some(l) => on.push((l, frame)),
+    let switch = |array: &mut dyn LightArray, position: usize, only: Option<usize>, timeout: Duration| {
+        // The plan's white lights, once: they stay so for every frame of the scan.
+        if position == 0 && only.is_none() {
+            for i in 0..array.light_count() {
+                array.set_light(i, if plan.lights.contains(&i) { 1.0 } else { 0.0 }, timeout)?;
             }
         }
-        summary.stale_discarded += u64::from(stale_here);
-        let Some(off) = off else { continue };
-        let view = LaserView { position, angle_deg, off, on, stale_discarded: stale_here };
-        views.send(view).map_err(|_| AcquisitionError::PipelineGone { position })?;
-        summary.views += 1;
-    }
-    summary.dropped = sequence.dropped;
-    Ok(summary)
+        if only.is_some_and(|l| l >= array.laser_count()) {
+            return Err(DeviceError::Unsupported {
+                device: "lights".into(),
+                operation: "switching a laser the light array does not have",
+            });
+        }
+        for i in 0..array.laser_count() {
+            array.set_laser(i, Some(i) == only, timeout)?;
+        }
+        Ok(())
+    };
+    let view =
+        |position, angle_deg, off, on, stale_discarded| LaserView { position, angle_deg, off, on, stale_discarded };
+    one_at_a_time_steps(rig, plan, lasers, "switching lasers", switch, view, views, cancel, progress)
 }

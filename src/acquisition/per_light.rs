@@ -10,7 +10,7 @@ use super::{
     SequenceTracker, Stage,
 };
 use crate::config::ScanPlan;
-use crate::devices::{DeviceError, Frame, Rig};
+use crate::devices::{DeviceError, Frame, LightArray, Rig};
 
 /// The frames of one turntable position of a per-light sequence.
 #[derive(Debug, Clone)]
@@ -47,6 +47,39 @@ fn per_light_steps(
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
+    let switch = |lights: &mut dyn LightArray, _position: usize, only: Option<usize>, timeout: Duration| {
+        for i in 0..lights.light_count() {
+            lights.set_light(i, if Some(i) == only { 1.0 } else { 0.0 }, timeout)?;
+        }
+        Ok(())
+    };
+    let view = |position, angle_deg, ambient, lit, stale_discarded| PerLightView {
+        position,
+        angle_deg,
+        ambient,
+        lit,
+        stale_discarded,
+    };
+    one_at_a_time_steps(rig, plan, &plan.shadow_lights, "switching lights", switch, view, views, cancel, progress)
+}
+
+/// The sequence shared by the per-light and laser scans: at each position, a frame with every source
+/// of `sources` off, then one frame per source alone, each captured fresh after `switch` returns (the
+/// instant of return is the change the frame must be exposed after). `switch(array, position, only,
+/// timeout)` puts the light array into the state "only `only` on" (`None`: all off); `step` names the
+/// switching in errors; `view(position, angle_deg, off, on, stale)` builds what is sent per position.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn one_at_a_time_steps<V>(
+    rig: &mut Rig,
+    plan: &ScanPlan,
+    sources: &[usize],
+    step: &'static str,
+    mut switch: impl FnMut(&mut dyn LightArray, usize, Option<usize>, Duration) -> Result<(), DeviceError>,
+    view: impl Fn(usize, f64, Frame, Vec<(usize, Frame)>, u32) -> V,
+    views: &SyncSender<V>,
+    cancel: &CancelToken,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<AcquisitionSummary, AcquisitionError> {
     let total = plan.positions as usize;
     let move_timeout = Duration::from_millis(plan.move_timeout_ms);
     let capture_timeout = Duration::from_millis(plan.capture_timeout_ms);
@@ -59,45 +92,40 @@ fn per_light_steps(
         }
         let span = tracing::info_span!("position", position, total);
         let _enter = span.enter();
-        let device = |step: &'static str| move |source| AcquisitionError::Device { step, position, source };
+        let device = |source| AcquisitionError::Device { step, position, source };
 
         let angle_deg = move_and_settle(rig, plan, position, progress)?;
 
         let mut stale_here = 0u32;
-        // `None` = ambient (all off), then each shadow light alone.
-        let mut ambient = None;
-        let mut lit = Vec::with_capacity(plan.shadow_lights.len());
-        for only in std::iter::once(None).chain(plan.shadow_lights.iter().map(|&l| Some(l))) {
+        let mut off = None;
+        let mut on = Vec::with_capacity(sources.len());
+        // `None` = every source off, then each source alone.
+        for only in std::iter::once(None).chain(sources.iter().map(|&l| Some(l))) {
             if cancel.is_cancelled() {
                 return Err(AcquisitionError::Cancelled { completed: position, total });
             }
             progress(&Progress { step: position, total, stage: Stage::Lighting });
-            let lights = rig.lights.as_mut().ok_or_else(|| {
-                device("switching lights")(DeviceError::Unsupported {
-                    device: "lights".into(),
-                    operation: "switching lights (the rig has no light array)",
-                })
+            let array = rig.lights.as_mut().ok_or_else(|| {
+                device(DeviceError::Unsupported { device: "lights".into(), operation: "the rig has no light array" })
             })?;
-            for i in 0..lights.light_count() {
-                let level = if Some(i) == only { 1.0 } else { 0.0 };
-                lights.set_light(i, level, move_timeout).map_err(device("switching lights"))?;
-            }
-            // The switch is done: only frames exposed from now on show this lighting.
+            switch(array.as_mut(), position, only, move_timeout).map_err(device)?;
+            // The switch is done: only frames exposed from now on show this state.
             let changed_at = Instant::now();
             progress(&Progress { step: position, total, stage: Stage::Capturing });
             let (frame, stale) =
                 capture_fresh(rig, changed_at, capture_timeout, plan.max_stale_frames, position, &mut sequence)?;
             stale_here += stale;
-            tracing::debug!(sequence = frame.sequence, angle_deg, light = ?only, stale, "captured");
+            tracing::debug!(sequence = frame.sequence, angle_deg, source = ?only, stale, "captured");
             match only {
-                None => ambient = Some(frame),
-                Some(l) => lit.push((l, frame)),
+                None => off = Some(frame),
+                Some(l) => on.push((l, frame)),
             }
         }
         summary.stale_discarded += u64::from(stale_here);
-        let Some(ambient) = ambient else { continue };
-        let view = PerLightView { position, angle_deg, ambient, lit, stale_discarded: stale_here };
-        views.send(view).map_err(|_| AcquisitionError::PipelineGone { position })?;
+        let Some(off) = off else { continue };
+        views
+            .send(view(position, angle_deg, off, on, stale_here))
+            .map_err(|_| AcquisitionError::PipelineGone { position })?;
         summary.views += 1;
     }
     summary.dropped = sequence.dropped;
