@@ -53,7 +53,7 @@ fn one_fresh_depth_frame_per_position_at_the_planned_angle() {
     let mut rig = build_rig(&rig_config).expect("rig opens");
     let (tx, rx) = mpsc::sync_channel(8);
     let summary =
-        run_depth_scan(&mut rig, &rig_config.scan, &tx, &CancelToken::new(), &mut |_| {}).expect("depth scan runs");
+        run_depth_scan(&mut rig, &rig_config.scan, 0, &tx, &CancelToken::new(), &mut |_| {}).expect("depth scan runs");
     drop(tx);
     let views: Vec<_> = rx.iter().collect();
     assert_eq!(summary.views, 6);
@@ -84,7 +84,7 @@ fn one_fresh_depth_frame_per_position_at_the_planned_angle() {
     no_depth.scan.positions = 2;
     let mut rig = build_rig(&no_depth).expect("rig opens");
     let (tx, _rx) = mpsc::sync_channel(8);
-    match run_depth_scan(&mut rig, &no_depth.scan, &tx, &CancelToken::new(), &mut |_| {}) {
+    match run_depth_scan(&mut rig, &no_depth.scan, 0, &tx, &CancelToken::new(), &mut |_| {}) {
         Err(AcquisitionError::Device { position: 0, source, .. }) => assert_eq!(source.kind(), ErrorKind::Unsupported),
         other => panic!("expected an unsupported-device error, got {other:?}"),
     }

@@ -126,8 +126,8 @@ fn laser_planes_calibrate_on_a_known_box() {
     let config = scanrig::config::load(&path).expect("derived rig loads");
     let mut rig = build_rig(&config).expect("simulated rig");
     let (tx, rx) = mpsc::sync_channel::<LaserView>(16);
-    let summary =
-        run_laser_scan(&mut rig, &config.scan, &[0, 1], &tx, &CancelToken::new(), &mut |_| {}).expect("laser sequence");
+    let summary = run_laser_scan(&mut rig, &config.scan, 0, &[0, 1], &tx, &CancelToken::new(), &mut |_| {})
+        .expect("laser sequence");
     drop(tx);
     assert_eq!(summary.views, 8);
     let views: Vec<LaserView> = rx.iter().collect();

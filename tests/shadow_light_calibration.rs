@@ -9,7 +9,7 @@ use scanrig::acquisition::CancelToken;
 use scanrig::config::{self, RigConfig};
 use scanrig::geometry::{turntable_rotation, Vector3};
 use scanrig::pipeline::light_calibration::{calibrate_point_light, LightFitParams, Sphere, SphereObservation};
-use scanrig::scan::shadow::run_shadow_scan;
+use scanrig::scan::run_scan;
 use scanrig::sim::{FrameNoise, Lighting, Material, PointLight, Primitive, RayTable, Scene, SimWorld, Solid};
 
 fn shipped() -> RigConfig {
@@ -96,8 +96,14 @@ fn a_scan_with_calibrated_lights_matches_the_configured_one() {
     let fitted: Vec<_> = calibrate(&rig, 1.0).into_iter().map(|(f, _)| f).collect();
     let dir = tempfile::tempdir().expect("tempdir");
     let cancel = CancelToken::new();
-    let with_config = run_shadow_scan(&rig, &dir.path().join("a"), None, &cancel, &mut |_| {}).expect("scan");
-    let with_fit = run_shadow_scan(&rig, &dir.path().join("b"), Some(&fitted), &cancel, &mut |_| {}).expect("scan");
+    let with_config = run_scan(&rig, &dir.path().join("a"), &cancel, &mut |_| {}).expect("scan");
+    // The calibrated positions go where a calibration file puts them: the rig's light positions.
+    let mut calibrated = rig.clone();
+    let lights = calibrated.lights.as_mut().expect("a light array");
+    for (&index, p) in rig.scan.shadow_lights.iter().zip(&fitted) {
+        lights.lights[index].position_m = [p.x, p.y, p.z];
+    }
+    let with_fit = run_scan(&calibrated, &dir.path().join("b"), &cancel, &mut |_| {}).expect("scan");
     let gt = |r: &scanrig::scan::Report| r.ground_truth.clone().expect("simulated truth");
     let (a, b) = (gt(&with_config), gt(&with_fit));
     eprintln!(
@@ -106,5 +112,11 @@ fn a_scan_with_calibrated_lights_matches_the_configured_one() {
     );
     assert!(b.containment >= 0.99);
     assert!((a.iou - b.iou).abs() < 0.03);
-    assert!(with_fit.shadow_carving.as_ref().is_some_and(|s| s.calibrated_positions));
+    let used = match &with_fit.details {
+        scanrig::scan::MethodDetails::ShadowCarving(s) => s.light_positions_m.clone(),
+        other => panic!("not a shadow-carving report: {other:?}"),
+    };
+    for (u, f) in used.iter().zip(&fitted) {
+        assert!((nalgebra::Vector3::from(*u) - f).norm() < 1e-12, "the scan used {u:?}, not the fitted {f:?}");
+    }
 }

@@ -68,7 +68,9 @@ fn the_cup_is_within_half_a_percent_and_its_pit_is_open() {
     assert!(iou > 0.95 && iou > hull_iou + 0.3, "IoU {iou} vs visual hull {hull_iou}");
     assert!(point_error < 0.0005, "mean point error {point_error} m");
     assert_eq!(report["structured_light"]["patterns_per_position"], 20, "9 column bit pairs + white + black");
-    assert!(out.join("frames/pos_011_white.png").is_file() && out.join("frames/pos_011_columns.png").is_file());
+    // Every capture is stored (resume, reprocessing): 20 per position, the last position's too.
+    assert!(out.join("frames/pos_011_pattern_00.png").is_file() && out.join("frames/pos_011_pattern_19.png").is_file());
+    assert!(out.join("frames/pos_011.json").is_file() && !out.join("frames/pos_011_pattern_20.png").exists());
 
     // The concavity: mesh on the pit's floor (z = 15 mm, r < 22 mm) and inner wall (r = 22 mm), none
     // in the pit's air. The visual hull has the pit filled to the rim.

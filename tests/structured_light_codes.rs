@@ -70,7 +70,8 @@ fn phase_shift_with_gamma_compensation_scans_the_cup_within_half_a_percent() {
     let chamfer_rel = num(&report, "ground_truth", "chamfer_rel");
     assert!(chamfer_rel < 0.0045, "chamfer_rel {chamfer_rel}");
     assert!(num(&report, "ground_truth", "iou") > 0.94);
-    assert!(dir.path().join("out/frames/pos_011_columns.png").is_file());
+    assert!(dir.path().join("out/frames/pos_011_pattern_10.png").is_file());
+    assert!(dir.path().join("out/frames/prepare.json").is_file(), "the measured response is stored for resume");
 }
 
 /// Compensation matters: with 3-step fringes (4 steps cancel the second harmonic that gamma

@@ -24,22 +24,26 @@ pub struct DepthView {
     pub stale_discarded: u32,
 }
 
-/// Run the depth sequence of `plan` on `rig` (which must have a depth camera), sending one
+/// Run the depth sequence of `plan` from position `first` on `rig` (which must have a depth camera), sending one
 /// [`DepthView`] per position; lights are not touched. The rig is parked at the end, also after an
 /// error or cancellation.
 pub fn run_depth_scan(
     rig: &mut Rig,
     plan: &ScanPlan,
+    first: usize,
     views: &SyncSender<DepthView>,
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
-    run_then_park(rig, plan, 0, progress, |rig, progress| depth_scan_steps(rig, plan, views, cancel, progress))
+    run_then_park(rig, plan, first, progress, |rig, progress| {
+        depth_scan_steps(rig, plan, first, views, cancel, progress)
+    })
 }
 
 fn depth_scan_steps(
     rig: &mut Rig,
     plan: &ScanPlan,
+    first: usize,
     views: &SyncSender<DepthView>,
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
@@ -48,7 +52,7 @@ fn depth_scan_steps(
     let capture_timeout = Duration::from_millis(plan.capture_timeout_ms);
     let mut summary = AcquisitionSummary::default();
     let mut sequence = SequenceTracker::default();
-    for position in 0..total {
+    for position in first..total {
         if cancel.is_cancelled() {
             return Err(AcquisitionError::Cancelled { completed: position, total });
         }

@@ -26,23 +26,27 @@ pub struct LaserView {
     pub stale_discarded: u32,
 }
 
-/// Run the laser sequence of `plan` with lasers `lasers` (indices of the light array's lasers) on
+/// Run the laser sequence of `plan` from position `first` with lasers `lasers` (indices of the light array's lasers) on
 /// `rig`, sending one [`LaserView`] per position to `views`. A rig without a light array, or without
 /// one of the lasers, fails at the first switch with a typed device error.
 pub fn run_laser_scan(
     rig: &mut Rig,
     plan: &ScanPlan,
+    first: usize,
     lasers: &[usize],
     views: &SyncSender<LaserView>,
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
-    run_then_park(rig, plan, 0, progress, |rig, progress| laser_steps(rig, plan, lasers, views, cancel, progress))
+    run_then_park(rig, plan, first, progress, |rig, progress| {
+        laser_steps(rig, plan, first, lasers, views, cancel, progress)
+    })
 }
 
 fn laser_steps(
     rig: &mut Rig,
     plan: &ScanPlan,
+    first: usize,
     lasers: &[usize],
     views: &SyncSender<LaserView>,
     cancel: &CancelToken,
@@ -50,7 +54,7 @@ fn laser_steps(
 ) -> Result<AcquisitionSummary, AcquisitionError> {
     let switch = |array: &mut dyn LightArray, position: usize, only: Option<usize>, timeout: Duration| {
         // The plan's white lights, once: they stay so for every frame of the scan.
-        if position == 0 && only.is_none() {
+        if position == first && only.is_none() {
             for i in 0..array.light_count() {
                 array.set_light(i, if plan.lights.contains(&i) { 1.0 } else { 0.0 }, timeout)?;
             }
@@ -68,5 +72,5 @@ fn laser_steps(
     };
     let view =
         |position, angle_deg, off, on, stale_discarded| LaserView { position, angle_deg, off, on, stale_discarded };
-    one_at_a_time_steps(rig, plan, lasers, "switching lasers", switch, view, views, cancel, progress)
+    one_at_a_time_steps(rig, plan, first, lasers, "switching lasers", switch, view, views, cancel, progress)
 }

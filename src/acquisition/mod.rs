@@ -17,7 +17,7 @@ mod structured;
 pub use depth::{capture_fresh_depth, run_depth_scan, DepthView};
 pub use laser::{run_laser_scan, LaserView};
 pub use per_light::{run_per_light_scan, PerLightView};
-pub use structured::{run_structured_light_scan, run_structured_light_scan_held, PatternStack};
+pub use structured::{run_structured_light_scan, PatternStack};
 
 use crate::config::ScanPlan;
 use crate::devices::{DeviceError, Frame, Rig};
@@ -81,10 +81,31 @@ pub enum Stage {
     Lighting,
     /// Capturing a frame.
     Capturing,
+    /// Showing pattern `pattern` (1-based) of `of` and capturing it (structured light).
+    Projecting {
+        /// 1-based index of the pattern on screen.
+        pattern: usize,
+        /// Patterns per position.
+        of: usize,
+    },
     /// Parking the hardware.
     Parking,
     /// Finished.
     Done,
+}
+
+impl std::fmt::Display for Stage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Stage::Moving => f.write_str("moving"),
+            Stage::Settling => f.write_str("settling"),
+            Stage::Lighting => f.write_str("switching lights"),
+            Stage::Capturing => f.write_str("capturing"),
+            Stage::Projecting { pattern, of } => write!(f, "projecting pattern {pattern}/{of}"),
+            Stage::Parking => f.write_str("parking"),
+            Stage::Done => f.write_str("done"),
+        }
+    }
 }
 
 /// Counters of a finished sequence.
@@ -148,22 +169,12 @@ pub fn position_angle(plan: &ScanPlan, i: usize) -> f64 {
     plan.start_deg + 360.0 * i as f64 / plan.positions as f64
 }
 
-/// Run the turntable scan in `plan` on `rig`: for each position move, wait for the move to finish,
-/// settle, set the lights, capture a fresh frame and send it to `views`. The lights are switched off
-/// and the turntable parked at the end, also after an error or cancellation.
+/// Run the turntable scan in `plan` on `rig` from position `first` (0-based; the positions before it
+/// are taken as already captured, as in a resumed scan): for each position move, wait for the move
+/// to finish, settle, set the lights, capture a fresh frame and send it to `views`. The lights are
+/// switched off and the turntable parked at the end, also after an error or cancellation. The
+/// summary counts only the views captured by this call.
 pub fn run_turntable_scan(
-    rig: &mut Rig,
-    plan: &ScanPlan,
-    views: &SyncSender<CapturedView>,
-    cancel: &CancelToken,
-    progress: &mut dyn FnMut(&Progress),
-) -> Result<AcquisitionSummary, AcquisitionError> {
-    run_turntable_scan_from(rig, plan, 0, views, cancel, progress)
-}
-
-/// [`run_turntable_scan`] starting at position `first` (0-based): positions before it are taken as
-/// already captured (a resumed scan). The summary counts only the views captured by this call.
-pub fn run_turntable_scan_from(
     rig: &mut Rig,
     plan: &ScanPlan,
     first: usize,

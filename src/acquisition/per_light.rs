@@ -27,22 +27,26 @@ pub struct PerLightView {
     pub stale_discarded: u32,
 }
 
-/// Run the per-light sequence of `plan` (lights `plan.shadow_lights`) on `rig`, sending one
+/// Run the per-light sequence of `plan` (lights `plan.shadow_lights`) on `rig` from position `first`, sending one
 /// [`PerLightView`] per position to `views`. Lights off and turntable parked at the end, also after an
 /// error or cancellation. A rig without a light array fails at the first switch.
 pub fn run_per_light_scan(
     rig: &mut Rig,
     plan: &ScanPlan,
+    first: usize,
     views: &SyncSender<PerLightView>,
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
-    run_then_park(rig, plan, 0, progress, |rig, progress| per_light_steps(rig, plan, views, cancel, progress))
+    run_then_park(rig, plan, first, progress, |rig, progress| {
+        per_light_steps(rig, plan, first, views, cancel, progress)
+    })
 }
 
 fn per_light_steps(
     rig: &mut Rig,
     plan: &ScanPlan,
+    first: usize,
     views: &SyncSender<PerLightView>,
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
@@ -60,7 +64,18 @@ fn per_light_steps(
         lit,
         stale_discarded,
     };
-    one_at_a_time_steps(rig, plan, &plan.shadow_lights, "switching lights", switch, view, views, cancel, progress)
+    one_at_a_time_steps(
+        rig,
+        plan,
+        first,
+        &plan.shadow_lights,
+        "switching lights",
+        switch,
+        view,
+        views,
+        cancel,
+        progress,
+    )
 }
 
 /// The sequence shared by the per-light and laser scans: at each position, a frame with every source
@@ -72,6 +87,7 @@ fn per_light_steps(
 pub(super) fn one_at_a_time_steps<V>(
     rig: &mut Rig,
     plan: &ScanPlan,
+    first: usize,
     sources: &[usize],
     step: &'static str,
     mut switch: impl FnMut(&mut dyn LightArray, usize, Option<usize>, Duration) -> Result<(), DeviceError>,
@@ -86,7 +102,7 @@ pub(super) fn one_at_a_time_steps<V>(
     let mut summary = AcquisitionSummary::default();
     let mut sequence = SequenceTracker::default();
 
-    for position in 0..total {
+    for position in first..total {
         if cancel.is_cancelled() {
             return Err(AcquisitionError::Cancelled { completed: position, total });
         }

@@ -32,38 +32,33 @@ pub struct PatternStack {
     pub stale_discarded: u32,
 }
 
-/// Run the structured-light sequence of `plan` on `rig` (which must have a projector), showing every
-/// pattern of `patterns` at each position and sending one [`PatternStack`] per position. The lights
-/// of `plan.lights` are switched on once (usually none: ambient light only lowers the contrast).
+/// Run the structured-light sequence of `plan` from position `first` on `rig` (which must have a
+/// projector), showing every pattern of `patterns` at each position and sending one [`PatternStack`]
+/// per position. Each pattern stays on screen for at least `hold` after the instant the projector
+/// reported it visible (the camera's exposure, a whole number of projector refreshes;
+/// `Duration::ZERO` for none) before the next is shown. The lights of `plan.lights` are switched on
+/// once (usually none: ambient light only lowers the contrast).
+#[allow(clippy::too_many_arguments)]
 pub fn run_structured_light_scan(
     rig: &mut Rig,
     plan: &ScanPlan,
-    patterns: &[Pattern],
-    stacks: &SyncSender<PatternStack>,
-    cancel: &CancelToken,
-    progress: &mut dyn FnMut(&Progress),
-) -> Result<AcquisitionSummary, AcquisitionError> {
-    run_structured_light_scan_held(rig, plan, patterns, Duration::ZERO, stacks, cancel, progress)
-}
-
-/// [`run_structured_light_scan`] keeping each pattern on screen for at least `hold` after the
-/// instant the projector reported it visible (the camera's exposure, a whole number of projector
-/// refreshes) before the next pattern is shown.
-pub fn run_structured_light_scan_held(
-    rig: &mut Rig,
-    plan: &ScanPlan,
+    first: usize,
     patterns: &[Pattern],
     hold: Duration,
     stacks: &SyncSender<PatternStack>,
     cancel: &CancelToken,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<AcquisitionSummary, AcquisitionError> {
-    run_then_park(rig, plan, 0, progress, |rig, progress| steps(rig, plan, patterns, hold, stacks, cancel, progress))
+    run_then_park(rig, plan, first, progress, |rig, progress| {
+        steps(rig, plan, first, patterns, hold, stacks, cancel, progress)
+    })
 }
 
+#[allow(clippy::too_many_arguments)]
 fn steps(
     rig: &mut Rig,
     plan: &ScanPlan,
+    first: usize,
     patterns: &[Pattern],
     hold: Duration,
     stacks: &SyncSender<PatternStack>,
@@ -80,7 +75,7 @@ fn steps(
             DeviceError::Unsupported { device: "projector".into(), operation: "structured light (the rig has none)" };
         return Err(AcquisitionError::Device { step: "showing a pattern", position: 0, source });
     }
-    for position in 0..total {
+    for position in first..total {
         if cancel.is_cancelled() {
             return Err(AcquisitionError::Cancelled { completed: position, total });
         }
@@ -88,7 +83,7 @@ fn steps(
         let _enter = span.enter();
         let device = |step: &'static str| move |source| AcquisitionError::Device { step, position, source };
         let angle_deg = move_and_settle(rig, plan, position, progress)?;
-        if position == 0 {
+        if position == first {
             progress(&Progress { step: position, total, stage: Stage::Lighting });
             if let Some(lights) = rig.lights.as_mut() {
                 for i in 0..lights.light_count() {
@@ -106,7 +101,12 @@ fn steps(
             visible_at: Vec::with_capacity(patterns.len()),
             stale_discarded: 0,
         };
-        for pattern in patterns {
+        for (k, pattern) in patterns.iter().enumerate() {
+            progress(&Progress {
+                step: position,
+                total,
+                stage: Stage::Projecting { pattern: k + 1, of: patterns.len() },
+            });
             if cancel.is_cancelled() {
                 return Err(AcquisitionError::Cancelled { completed: position, total });
             }
@@ -216,9 +216,17 @@ mod tests {
         let (white, black) = white_black(&rig);
         let patterns = [white.clone(), black.clone(), white, black];
         let (tx, rx) = mpsc::sync_channel(4);
-        let summary =
-            run_structured_light_scan(&mut rig, &config.scan, &patterns, &tx, &CancelToken::new(), &mut |_| {})
-                .expect("scan");
+        let summary = run_structured_light_scan(
+            &mut rig,
+            &config.scan,
+            0,
+            &patterns,
+            Duration::ZERO,
+            &tx,
+            &CancelToken::new(),
+            &mut |_| {},
+        )
+        .expect("scan");
         drop(tx);
         let stacks: Vec<PatternStack> = rx.iter().collect();
         assert_eq!((summary.views, stacks.len()), (2, 2));
@@ -252,12 +260,21 @@ mod tests {
         let (tx, _rx) = mpsc::sync_channel(4);
         let cancel = CancelToken::new();
         let mut shown = 0;
-        let err = run_structured_light_scan(&mut rig, &config.scan, &[white.clone(), white], &tx, &cancel, &mut |p| {
-            if p.stage == Stage::Capturing {
-                shown += 1;
-                cancel.cancel();
-            }
-        })
+        let err = run_structured_light_scan(
+            &mut rig,
+            &config.scan,
+            0,
+            &[white.clone(), white],
+            Duration::ZERO,
+            &tx,
+            &cancel,
+            &mut |p| {
+                if p.stage == Stage::Capturing {
+                    shown += 1;
+                    cancel.cancel();
+                }
+            },
+        )
         .expect_err("cancelled");
         assert!(matches!(err, AcquisitionError::Cancelled { completed: 0, .. }), "{err:?}");
         assert_eq!(shown, 1);

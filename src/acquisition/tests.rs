@@ -27,8 +27,9 @@ fn every_position_yields_one_fresh_frame_and_the_rig_is_parked() {
     let mut rig = build_rig(&config).expect("rig");
     let (tx, rx) = mpsc::sync_channel(8);
     let mut stages = Vec::new();
-    let summary = run_turntable_scan(&mut rig, &config.scan, &tx, &CancelToken::new(), &mut |p| stages.push(p.clone()))
-        .expect("scan");
+    let summary =
+        run_turntable_scan(&mut rig, &config.scan, 0, &tx, &CancelToken::new(), &mut |p| stages.push(p.clone()))
+            .expect("scan");
     drop(tx);
     let views: Vec<CapturedView> = rx.iter().collect();
     assert_eq!(views.len(), 6);
@@ -61,7 +62,7 @@ fn cancellation_stops_between_steps_and_parks() {
     let (tx, rx) = mpsc::sync_channel(8);
     let cancel = CancelToken::new();
     let c2 = cancel.clone();
-    let err = run_turntable_scan(&mut rig, &config.scan, &tx, &cancel, &mut |p| {
+    let err = run_turntable_scan(&mut rig, &config.scan, 0, &tx, &cancel, &mut |p| {
         if p.step == 3 && p.stage == Stage::Moving {
             c2.cancel();
         }
@@ -80,7 +81,7 @@ fn a_vanished_pipeline_stops_the_scan_and_parks() {
     let (tx, rx) = mpsc::sync_channel(1);
     drop(rx);
     let err =
-        run_turntable_scan(&mut rig, &config.scan, &tx, &CancelToken::new(), &mut |_| {}).expect_err("no consumer");
+        run_turntable_scan(&mut rig, &config.scan, 0, &tx, &CancelToken::new(), &mut |_| {}).expect_err("no consumer");
     assert!(matches!(err, AcquisitionError::PipelineGone { position: 0 }), "{err}");
     assert!(lights_off(&rig));
 }

@@ -76,18 +76,23 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Reconstruct from a calibrated image set on disk (Middlebury `*_par.txt` or a file of 3x4
-    /// projection matrices) and write the same outputs as `scan`.
+    /// Reconstruct a stored scan again (`--scan DIR`: any method its views serve, other settings;
+    /// no hardware), or a calibrated image set on disk (`--dataset DIR`: Middlebury `*_par.txt` or a
+    /// file of 3x4 projection matrices), and write the same outputs as `scan`.
     Reconstruct {
+        /// A stored scan directory (with `rig.toml` and `frames/`), e.g. a `scan --out` directory.
+        #[arg(long, conflicts_with_all = ["dataset", "bbox", "calibration", "views", "masks", "silhouette"])]
+        scan: Option<PathBuf>,
         /// The data set directory (image names in the calibration are relative to it).
+        #[arg(long, required_unless_present = "scan")]
+        dataset: Option<PathBuf>,
+        /// Reconstruction method (default: the stored scan's, or space-carving for a data set).
+        #[arg(long, value_enum)]
+        method: Option<scanrig::config::Method>,
+        /// Voxels along the longest side of the box (default: the stored scan's; required for a
+        /// data set).
         #[arg(long)]
-        dataset: PathBuf,
-        /// Reconstruction method.
-        #[arg(long, default_value = "space-carving")]
-        method: String,
-        /// Voxels along the longest side of the box.
-        #[arg(long)]
-        resolution: u32,
+        resolution: Option<u32>,
         /// Working volume xmin,ymin,zmin,xmax,ymax,zmax in metres (default: estimated from the views).
         #[arg(long, allow_hyphen_values = true)]
         bbox: Option<String>,
@@ -105,9 +110,9 @@ enum Command {
         /// of D and E pixels). Default: the Middlebury recipe threshold=0.19,dilate=10,erode=7.
         #[arg(long)]
         silhouette: Option<String>,
-        /// Occupancy smoothing radius for the mesh, voxels.
-        #[arg(long, default_value_t = 0)]
-        smooth: u32,
+        /// Occupancy smoothing radius for the mesh, voxels (default: the stored scan's, or 0).
+        #[arg(long)]
+        smooth: Option<u32>,
         /// Photo-consistency test of voxel-coloring / space-carving-photo:
         /// threshold=T,min_cos=C,min_views=N[,ncc=X][,arc=DEG] (T in 0..255 levels).
         #[arg(long)]
@@ -166,15 +171,45 @@ enum Command {
     Start {
         #[command(flatten)]
         daemon: DaemonArgs,
+        /// Reconstruction method (any the rig allows: see `scanrig methods`).
+        #[arg(long, value_enum)]
+        method: Option<scanrig::config::Method>,
         /// Turntable positions.
         #[arg(long)]
         positions: Option<u32>,
+        /// Voxels along the working volume's longest side.
+        #[arg(long)]
+        resolution: Option<u32>,
+        /// Lights on for each frame, by index, comma-separated.
+        #[arg(long, value_delimiter = ',')]
+        lights: Option<Vec<usize>>,
         /// Follow its progress until it ends.
         #[arg(long)]
         watch: bool,
     },
     /// Daemon: follow the running scan's progress until it ends.
     Watch(DaemonArgs),
+    /// Daemon: the methods the rig can run, and what the others miss.
+    Methods(DaemonArgs),
+    /// Daemon: reconstruct a stored scan again with other settings into a new scan entry.
+    Reprocess {
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        /// Scan id.
+        id: String,
+        /// Reconstruction method (one the stored views serve).
+        #[arg(long, value_enum)]
+        method: Option<scanrig::config::Method>,
+        /// Voxels along the working volume's longest side.
+        #[arg(long)]
+        resolution: Option<u32>,
+        /// Occupancy smoothing radius of the mesh, voxels.
+        #[arg(long)]
+        smooth: Option<u32>,
+        /// Follow its progress until it ends.
+        #[arg(long)]
+        watch: bool,
+    },
     /// Daemon: pause a running scan at the next step.
     Pause {
         #[command(flatten)]
@@ -316,6 +351,35 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             println!("{}: ok", rig.display());
             Ok(())
         }
+        Command::Reconstruct { scan: Some(scan_dir), method, resolution, smooth, photo, out, .. } => {
+            let mut config = scanrig::config::load(&scan_dir.join(scan::driver::RIG_FILE))
+                .with_context(|| format!("{} is not a stored scan", scan_dir.display()))?;
+            if let Some(m) = method {
+                config.reconstruction.method = m;
+            }
+            if let Some(r) = resolution {
+                config.reconstruction.resolution = r;
+            }
+            if let Some(r) = smooth {
+                config.reconstruction.mesh.smooth_radius = r;
+            }
+            if let Some(p) = &photo {
+                config.reconstruction.photo =
+                    reconstruct::parse_photo(p).map_err(|e| anyhow::anyhow!("--photo {p}: {e}"))?;
+            }
+            let problems = config.validate();
+            if !problems.is_empty() {
+                let list: Vec<String> = problems.iter().map(|p| format!("{}: {}", p.key, p.message)).collect();
+                anyhow::bail!("the options do not fit the stored scan:\n  {}", list.join("\n  "));
+            }
+            let mut reporter = Reporter::new(config.scan.positions as u64);
+            let report = scan::reprocess(&config, &scan_dir, &out, &CancelToken::new(), &mut |e| reporter.event(&e))
+                .with_context(|| format!("reprocessing {} failed", scan_dir.display()))?;
+            reporter.finish();
+            print_summary(&report);
+            println!("results in {}", out.display());
+            Ok(())
+        }
         Command::Reconstruct {
             dataset,
             method,
@@ -328,15 +392,18 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             smooth,
             photo,
             out,
+            ..
         } => {
-            let method = match method.as_str() {
-                "space-carving" => scanrig::config::Method::SpaceCarving,
-                "voxel-coloring" => scanrig::config::Method::VoxelColoring,
-                "space-carving-photo" => scanrig::config::Method::SpaceCarvingPhoto,
-                other => anyhow::bail!(
-                    "--method {other}: unknown method (known: space-carving, voxel-coloring, space-carving-photo)"
-                ),
-            };
+            let dataset = dataset.context("--dataset or --scan is required")?;
+            let method = method.unwrap_or(scanrig::config::Method::SpaceCarving);
+            if !(method == scanrig::config::Method::SpaceCarving || method.is_photo()) {
+                anyhow::bail!(
+                    "--method {method}: a data set of calibrated images is reconstructed with space-carving, \
+                     voxel-coloring or space-carving-photo; other methods reconstruct a stored scan (--scan DIR)"
+                );
+            }
+            let resolution = resolution.context("--resolution is required with --dataset")?;
+            let smooth = smooth.unwrap_or(0);
             if !(2..=4096).contains(&resolution) {
                 anyhow::bail!("--resolution {resolution}: must be between 2 and 4096 voxels");
             }
@@ -393,14 +460,58 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             println!("{}", serde_json::to_string_pretty(&v)?);
             Ok(())
         }
-        Command::Start { daemon, positions, watch } => {
+        Command::Start { daemon, method, positions, resolution, lights, watch } => {
             let c = daemon.client()?;
             let mut body = serde_json::json!({});
+            if let Some(m) = method {
+                body["method"] = serde_json::to_value(m)?;
+            }
             if let Some(n) = positions {
                 body["positions"] = n.into();
             }
+            if let Some(r) = resolution {
+                body["resolution"] = r.into();
+            }
+            if let Some(l) = lights {
+                body["lights"] = l.into();
+            }
             let v = c.post_json("/api/v1/scans", &body)?;
-            println!("started {}", v["id"].as_str().unwrap_or("?"));
+            println!("started {} ({})", v["id"].as_str().unwrap_or("?"), v["method"].as_str().unwrap_or("?"));
+            if watch {
+                watch_progress(&c)?;
+            }
+            Ok(())
+        }
+        Command::Methods(d) => {
+            let v = d.client()?.get_json("/api/v1/methods")?;
+            for m in v["methods"].as_array().map(Vec::as_slice).unwrap_or(&[]) {
+                let name = m["method"].as_str().unwrap_or("?");
+                if m["available"].as_bool() == Some(true) {
+                    println!("{name:<20} available");
+                } else {
+                    let missing: Vec<&str> = m["missing"]
+                        .as_array()
+                        .map(|a| a.iter().filter_map(|x| x.as_str()).collect())
+                        .unwrap_or_default();
+                    println!("{name:<20} not available: {}", missing.join("; "));
+                }
+            }
+            Ok(())
+        }
+        Command::Reprocess { daemon, id, method, resolution, smooth, watch } => {
+            let c = daemon.client()?;
+            let mut body = serde_json::json!({});
+            if let Some(m) = method {
+                body["method"] = serde_json::to_value(m)?;
+            }
+            if let Some(r) = resolution {
+                body["resolution"] = r.into();
+            }
+            if let Some(r) = smooth {
+                body["smooth_radius"] = r.into();
+            }
+            let v = c.post_json(&format!("/api/v1/scans/{id}/reprocess"), &body)?;
+            println!("reprocessing {id} as {}", v["id"].as_str().unwrap_or("?"));
             if watch {
                 watch_progress(&c)?;
             }
@@ -425,22 +536,30 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let report = scan::run_scan(&config, &out, &cancel, &mut |e| reporter.event(&e))
                 .with_context(|| format!("scan with {} failed", rig.display()))?;
             reporter.finish();
-            println!(
-                "{} views, {} voxels occupied ({}x{}x{}), mesh {} triangles, {:.2} s",
-                report.views,
-                report.occupied_voxels,
-                report.resolution[0],
-                report.resolution[1],
-                report.resolution[2],
-                report.mesh_triangles,
-                report.timings_s.total
-            );
-            if let Some(gt) = &report.ground_truth {
-                println!("ground truth ({}): IoU {:.4}, containment {:.4}", gt.scene, gt.iou, gt.containment);
-            }
+            print_summary(&report);
             println!("results in {}", out.display());
             Ok(())
         }
+    }
+}
+
+/// One line of figures of a finished result, and its ground truth on a simulated rig.
+fn print_summary(report: &scan::Report) {
+    println!(
+        "{}: {} views, {} voxels occupied ({}x{}x{}), mesh {} triangles, {:.2} s ({:.2} s after the last frame)",
+        report.method,
+        report.views,
+        report.occupied_voxels,
+        report.resolution[0],
+        report.resolution[1],
+        report.resolution[2],
+        report.mesh_triangles,
+        report.timings_s.total,
+        report.timings_s.after_last_frame_s
+    );
+    if let Some(gt) = &report.ground_truth {
+        let chamfer = gt.chamfer_rel.map_or(String::new(), |c| format!(", Chamfer {:.4} of the diagonal", c));
+        println!("ground truth ({}): IoU {:.4}, containment {:.4}{chamfer}", gt.scene, gt.iou, gt.containment);
     }
 }
 
@@ -515,19 +634,20 @@ impl Reporter {
     fn event(&mut self, e: &ScanEvent) {
         match (e, &self.bar) {
             (ScanEvent::Acquisition(p), Some(bar)) => {
-                bar.set_message(format!("{:?}", p.stage).to_lowercase());
+                bar.set_message(p.stage.to_string());
             }
             (ScanEvent::Acquisition(p), None) => {
                 if matches!(p.stage, Stage::Moving | Stage::Done) {
-                    eprintln!("scan: position {}/{}: {:?}", p.step, p.total, p.stage);
+                    eprintln!("scan: position {}/{}: {}", p.step, p.total, p.stage);
                 }
             }
-            (ScanEvent::ViewProcessed { position, occupied }, Some(bar)) => {
+            (ScanEvent::ViewProcessed { position, total, message }, Some(bar)) => {
+                bar.set_length(*total as u64);
                 bar.set_position(*position as u64 + 1);
-                bar.set_message(format!("{occupied} voxels"));
+                bar.set_message(message.clone());
             }
-            (ScanEvent::ViewProcessed { position, occupied }, None) => {
-                eprintln!("pipeline: view {} carved, {occupied} voxels left", position + 1);
+            (ScanEvent::ViewProcessed { position, total, message }, None) => {
+                eprintln!("pipeline: view {}/{total}: {message}", position + 1);
             }
             (ScanEvent::Stage(s), Some(bar)) => bar.set_message(*s),
             (ScanEvent::Stage(s), None) => eprintln!("pipeline: {s}"),

@@ -6,7 +6,7 @@ use serde::Deserialize;
 use crate::geometry::{Aabb, CameraModel, Intrinsics, Pose, Vector3};
 
 /// A whole rig file.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct RigConfig {
     /// `[rig]`: name and description.
@@ -38,7 +38,7 @@ pub struct RigConfig {
 }
 
 /// `[rig]`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct RigSection {
     /// A name for logs and reports.
@@ -56,7 +56,7 @@ pub struct RigSection {
 }
 
 /// `[turntable]`, tagged by `kind`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum TurntableConfig {
     /// `kind = "sim"`: a simulated stepper.
@@ -66,7 +66,7 @@ pub enum TurntableConfig {
 }
 
 /// `[turntable] kind = "serial"`.
-#[derive(Debug, Clone, Default, Deserialize)]
+#[derive(Debug, Clone, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct SerialTurntableConfig {
     /// Turn the other way (for a motor wired in reverse): the angles the host asks for are negated
@@ -76,7 +76,7 @@ pub struct SerialTurntableConfig {
 }
 
 /// `[controller]`: one microcontroller on one serial port, driving the turntable and the lights.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct ControllerConfig {
     /// The port: `/dev/serial/by-id/...` (preferred), `usb:VID:PID[:SERIAL]` (hex ids), a device path,
@@ -127,7 +127,7 @@ pub struct ControllerConfig {
 }
 
 /// Firmware dialects for `[controller] dialect`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SerialDialect {
     /// The scanrig line protocol v1.
@@ -151,7 +151,7 @@ impl SerialDialect {
 }
 
 /// `[controller.emulator]`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct EmulatorConfig {
     /// Emulated table speed, degrees per second.
@@ -229,7 +229,7 @@ fn default_emulator_lights() -> u32 {
 }
 
 /// `[turntable] kind = "sim"`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct SimTurntableConfig {
     /// Micro-steps per full turn of the table.
@@ -252,7 +252,7 @@ fn default_speed() -> f64 {
 }
 
 /// `[lights]`: the light array's driver and the calibrated geometry of its lights and lasers.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct LightsConfig {
     /// Driver.
@@ -266,7 +266,7 @@ pub struct LightsConfig {
 }
 
 /// Light array drivers.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum LightsKind {
     /// Simulated lights that light the simulated scene.
@@ -276,7 +276,7 @@ pub enum LightsKind {
 }
 
 /// One white point light.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct PointLightConfig {
     /// Position in the rig frame, metres.
@@ -288,7 +288,7 @@ pub struct PointLightConfig {
 }
 
 /// One line laser: a light plane fanned out from a point.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct LaserConfig {
     /// The laser's exit point in the rig frame, metres.
@@ -308,7 +308,7 @@ fn red() -> [u8; 3] {
 }
 
 /// `[camera]`, tagged by `kind`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum CameraConfig {
     /// `kind = "sim"`: renders the simulated world.
@@ -346,7 +346,7 @@ impl CameraConfig {
 }
 
 /// `[camera] kind = "v4l2"` or `"uvc"`: a real camera.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct RealCameraConfig {
     /// Which camera, by a stable identity: `/dev/v4l/by-id/...`, `usb:VID:PID[:SERIAL]`,
@@ -379,7 +379,7 @@ fn default_real_buffers() -> u32 {
 }
 
 /// `[camera] kind = "sim"`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct SimCameraConfig {
     /// Image width, pixels.
@@ -405,7 +405,7 @@ fn default_buffer_depth() -> u32 {
 }
 
 /// A camera's calibration: intrinsics and pose in the rig frame.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraCalibration {
     /// `[camera.calibration.intrinsics]`, pixels.
@@ -422,7 +422,7 @@ impl CameraCalibration {
 }
 
 /// A pose in the rig frame, either by look-at or by rotation + translation.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(untagged, deny_unknown_fields)]
 pub enum PoseConfig {
     /// Camera centre `eye_m` looking at `target_m`, `up` up in the image.
@@ -464,7 +464,7 @@ impl PoseConfig {
 }
 
 /// `[projector]`, tagged by `kind`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum ProjectorConfig {
     /// `kind = "sim"`: projects onto the simulated scene.
@@ -475,7 +475,7 @@ pub enum ProjectorConfig {
 }
 
 /// `[projector] kind = "fbdev"`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct FbdevProjectorConfig {
     /// The framebuffer device, e.g. `/dev/fb1` (`scanrig devices` lists them with their sizes).
@@ -529,7 +529,7 @@ impl ProjectorConfig {
 }
 
 /// `[projector] kind = "sim"`: a projector modelled as an inverse pinhole camera.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct SimProjectorConfig {
     /// Width, projector pixels.
@@ -559,7 +559,7 @@ pub struct SimProjectorConfig {
 }
 
 /// `[depth_camera]`, tagged by `kind`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum DepthCameraConfig {
     /// `kind = "sim"`: depth rendered from the simulated scene.
@@ -569,7 +569,7 @@ pub enum DepthCameraConfig {
 }
 
 /// `[depth_camera] kind = "freenect"`: a Kinect v1, depth 640x480 in millimetres.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct FreenectDepthConfig {
     /// The Kinect's camera serial number (stable; `scanrig devices` lists it); absent = the first.
@@ -592,7 +592,7 @@ impl FreenectDepthConfig {
 }
 
 /// `[depth_camera] kind = "sim"`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct SimDepthCameraConfig {
     /// Width, pixels.
@@ -610,7 +610,7 @@ pub struct SimDepthCameraConfig {
 }
 
 /// `[sim]`: the simulated world.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct SimConfig {
     /// The scene on the turntable: `"sphere"`, `"box"`, `"cup"`, `"pit-block"` or `"textured-box"`.
@@ -631,7 +631,7 @@ fn default_ambient() -> f64 {
 }
 
 /// `[scan]`: what the acquisition does.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct ScanPlan {
     /// Turntable positions, evenly spaced over one turn.
@@ -671,7 +671,7 @@ fn default_max_stale() -> u32 {
 }
 
 /// `[reconstruction]`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct ReconstructionConfig {
     /// Method: `"space-carving"`, `"shadow-carving"`, `"depth-fusion"`, `"voxel-coloring"` or
@@ -704,7 +704,7 @@ pub struct ReconstructionConfig {
 }
 
 /// `[reconstruction.depth_fusion]`: the TSDF of method `depth-fusion`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct DepthFusionConfig {
     /// Truncation distance, voxels.
@@ -734,8 +734,9 @@ impl ReconstructionConfig {
 }
 
 /// Reconstruction methods.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize, serde::Serialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
+#[clap(rename_all = "kebab-case")]
 pub enum Method {
     /// Visual hull by silhouette carving.
     SpaceCarving,
@@ -754,6 +755,12 @@ pub enum Method {
     StructuredLight,
 }
 
+impl std::fmt::Display for Method {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 impl Method {
     /// The name used in TOML, the CLI and reports.
     pub fn name(self) -> &'static str {
@@ -768,6 +775,23 @@ impl Method {
         }
     }
 
+    /// Every method, in the order the README lists them.
+    pub const ALL: [Method; 7] = [
+        Method::SpaceCarving,
+        Method::ShadowCarving,
+        Method::VoxelColoring,
+        Method::SpaceCarvingPhoto,
+        Method::DepthFusion,
+        Method::StructuredLight,
+        Method::Laser,
+    ];
+
+    /// True for the methods that measure the surface (depth, triangulation) rather than carve a
+    /// volume: their mesh is compared with the true surface (Chamfer distance).
+    pub fn measures_surface(self) -> bool {
+        matches!(self, Method::DepthFusion | Method::Laser | Method::StructuredLight)
+    }
+
     /// True for the photo-consistency methods (they need the images, not only silhouettes).
     pub fn is_photo(self) -> bool {
         matches!(self, Method::VoxelColoring | Method::SpaceCarvingPhoto)
@@ -775,7 +799,7 @@ impl Method {
 }
 
 /// `[reconstruction.photo]`: the photo-consistency test (see `pipeline::photo_consistency`).
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct PhotoConfig {
     /// Largest colour standard deviation between the views of a kept voxel (of their mean colours
@@ -834,7 +858,7 @@ impl Default for PhotoConfig {
 /// `background`, scaled to 0..1, exceeds `threshold`; then a closing (dilate, erode) with discs of the
 /// given radii in pixels. With `background = [0, 0, 0]` this is the Middlebury recipe (threshold on
 /// max(R, G, B)).
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct SilhouetteConfig {
     /// Threshold, 0..1.
@@ -862,7 +886,7 @@ impl Default for SilhouetteConfig {
 }
 
 /// `[reconstruction.mesh]`.
-#[derive(Debug, Clone, Default, Deserialize)]
+#[derive(Debug, Clone, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct MeshConfig {
     /// Box-filter the occupancy over this many voxels (radius) before marching cubes, so the mesh
@@ -872,7 +896,7 @@ pub struct MeshConfig {
 }
 
 /// `[reconstruction.laser]`: stripe detection, point cloud clean-up and meshing of method `laser`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct LaserScanConfig {
     /// Indices of the `[[lights.laser]]` entries to scan with, each captured on its own at every
@@ -905,13 +929,6 @@ pub struct LaserScanConfig {
     /// otherwise return); 0 keeps every point.
     #[serde(default = "default_laser_thin")]
     pub thin_voxels: f64,
-    /// Whether to write every laser-off and laser-on frame as PNG under `frames/`.
-    #[serde(default = "default_true")]
-    pub save_frames: bool,
-}
-
-fn default_true() -> bool {
-    true
 }
 
 fn default_laser_min_peak() -> f64 {
@@ -947,7 +964,6 @@ impl Default for LaserScanConfig {
             outlier_std_ratio: default_laser_std_ratio(),
             mesh_neighbours: default_laser_mesh_neighbours(),
             thin_voxels: default_laser_thin(),
-            save_frames: true,
         }
     }
 }

@@ -1,152 +1,94 @@
 //! Symmetric Chamfer distance between point sets, and area-weighted point samples of a triangle mesh.
 //!
-//! Nearest neighbours come from a uniform voxel hash ([`PointIndex`]): points are bucketed in cubic
-//! cells, a query visits shells of cells around its own cell, nearest first, and stops as soon as no
-//! unvisited shell can hold a closer point. Queries run in parallel with rayon. Points are in metres,
+//! Nearest neighbours come from a kd-tree ([`PointIndex`]), so a query far from the other set (a
+//! poor reconstruction) costs no more than a near one. Queries run in parallel with rayon. Points are in metres,
 //! in whatever frame both sets share.
-
-use std::collections::HashMap;
 
 use rayon::prelude::*;
 
 use super::mesh::TriangleMesh;
 
-/// A nearest-neighbour index over a fixed set of points (metres): a pyramid of voxel hashes, each
-/// level's cells four times the size of the previous one's, so a query far from every point finds
-/// its neighbour in a few shells of a coarse level instead of many empty shells of the finest.
+/// A nearest-neighbour index over a fixed point set (metres): a balanced kd-tree stored in place
+/// (the median of each range splits it along the range's widest axis), so a query costs about
+/// log2(n) steps however far it is from the points. Non-finite points are left out.
 #[derive(Debug, Clone)]
 pub struct PointIndex {
-    /// Finest first; the last level has cells at least as large as the points' bounding box.
-    levels: Vec<Level>,
-    len: usize,
-}
-
-#[derive(Debug, Clone)]
-struct Level {
-    cell_m: f32,
-    cells: HashMap<[i32; 3], Vec<[f32; 3]>>,
-    /// Smallest and largest occupied cell index per axis.
-    cell_lo: [i32; 3],
-    cell_hi: [i32; 3],
-}
-
-/// Shells searched on a level before moving to a coarser one.
-const SHELLS_PER_LEVEL: i32 = 4;
-
-impl Level {
-    fn new(points: &[[f32; 3]], cell_m: f32) -> Level {
-        let mut cells: HashMap<[i32; 3], Vec<[f32; 3]>> = HashMap::new();
-        for p in points {
-            cells.entry(cell_of(p, cell_m)).or_default().push(*p);
-        }
-        let (mut cell_lo, mut cell_hi) = ([i32::MAX; 3], [i32::MIN; 3]);
-        for k in cells.keys() {
-            for a in 0..3 {
-                cell_lo[a] = cell_lo[a].min(k[a]);
-                cell_hi[a] = cell_hi[a].max(k[a]);
-            }
-        }
-        Level { cell_m, cells, cell_lo, cell_hi }
-    }
-
-    /// The nearest squared distance if it is certain after at most `max_shells` shells beyond the
-    /// points' box (`None` if the search stopped before it was certain).
-    fn search(&self, q: &[f32; 3], max_shells: i32) -> Option<f32> {
-        let c = cell_of(q, self.cell_m);
-        // Shells between q's cell and the points' box hold nothing.
-        let offset = (0..3).map(|a| (self.cell_lo[a] - c[a]).max(c[a] - self.cell_hi[a]).max(0)).max().unwrap_or(0);
-        let span = (0..3).map(|a| self.cell_hi[a] - self.cell_lo[a]).max().unwrap_or(0);
-        let d2 = |p: &[f32; 3]| (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2);
-        let mut best2 = f32::INFINITY;
-        let mut r = offset;
-        loop {
-            // Every point in shell r or beyond is at least (r - 1) cells away from q.
-            let floor = (r - 1).max(0) as f32 * self.cell_m;
-            if best2.is_finite() && floor * floor > best2 {
-                return Some(best2);
-            }
-            if r > offset + span + 2 {
-                // Every cell of the box was visited.
-                return best2.is_finite().then_some(best2);
-            }
-            if r > offset + max_shells {
-                return None;
-            }
-            for dz in -r..=r {
-                for dy in -r..=r {
-                    let on_face = dz.abs() == r || dy.abs() == r;
-                    let step = if on_face || r == 0 { 1 } else { 2 * r };
-                    let mut dx = -r;
-                    while dx <= r {
-                        if let Some(pts) = self.cells.get(&[c[0] + dx, c[1] + dy, c[2] + dz]) {
-                            best2 = pts.iter().map(d2).fold(best2, f32::min);
-                        }
-                        dx += step;
-                    }
-                }
-            }
-            r += 1;
-        }
-    }
+    /// The points, reordered into the tree: the node of range `lo..hi` is at `(lo + hi) / 2`.
+    points: Vec<[f32; 3]>,
+    /// The split axis of each node, by position in `points`.
+    axes: Vec<u8>,
 }
 
 impl PointIndex {
-    /// Index `points` (metres), the finest level sized for a few points per cell on a surface
-    /// sample. Non-finite points are ignored.
+    /// Index `points`.
     pub fn new(points: &[[f32; 3]]) -> PointIndex {
-        let finite: Vec<[f32; 3]> = points.iter().copied().filter(|p| p.iter().all(|c| c.is_finite())).collect();
-        if finite.is_empty() {
-            return PointIndex { levels: Vec::new(), len: 0 };
-        }
-        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-        for p in &finite {
-            for a in 0..3 {
-                lo[a] = lo[a].min(p[a]);
-                hi[a] = hi[a].max(p[a]);
-            }
-        }
-        let diag = ((hi[0] - lo[0]).powi(2) + (hi[1] - lo[1]).powi(2) + (hi[2] - lo[2]).powi(2)).sqrt();
-        // Surface samples: about n^(1/2) cells along the diagonal keeps a few points per cell.
-        let per_side = (finite.len() as f32).sqrt().max(1.0);
-        let mut cell_m = if diag > 0.0 { (diag / per_side).max(1e-6) } else { 1.0 };
-        let mut levels = Vec::new();
-        loop {
-            levels.push(Level::new(&finite, cell_m));
-            if cell_m >= diag || levels.len() >= 12 {
-                break;
-            }
-            cell_m *= 4.0;
-        }
-        PointIndex { levels, len: finite.len() }
+        let mut pts: Vec<[f32; 3]> = points.iter().copied().filter(|p| p.iter().all(|c| c.is_finite())).collect();
+        let mut axes = vec![0u8; pts.len()];
+        build(&mut pts, &mut axes);
+        PointIndex { points: pts, axes }
     }
 
-    /// Number of indexed points.
+    /// Points indexed.
     pub fn len(&self) -> usize {
-        self.len
+        self.points.len()
     }
 
-    /// True when nothing is indexed.
+    /// Whether the index holds no point.
     pub fn is_empty(&self) -> bool {
-        self.len == 0
+        self.points.is_empty()
     }
 
     /// Distance from `q` to the nearest indexed point, metres; `None` for an empty index or a
     /// non-finite query.
     pub fn nearest_distance(&self, q: &[f32; 3]) -> Option<f32> {
-        if !q.iter().all(|c| c.is_finite()) {
+        if self.points.is_empty() || !q.iter().all(|c| c.is_finite()) {
             return None;
         }
-        let (last, finer) = self.levels.split_last()?;
-        finer
-            .iter()
-            .find_map(|level| level.search(q, SHELLS_PER_LEVEL))
-            .or_else(|| last.search(q, i32::MAX / 4))
-            .map(f32::sqrt)
+        let mut best = f32::INFINITY;
+        self.search(q, 0, self.points.len(), &mut best);
+        Some(best.sqrt())
+    }
+
+    fn search(&self, q: &[f32; 3], lo: usize, hi: usize, best: &mut f32) {
+        if lo >= hi {
+            return;
+        }
+        let mid = (lo + hi) / 2;
+        let p = &self.points[mid];
+        let d2 = (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2);
+        if d2 < *best {
+            *best = d2;
+        }
+        let axis = self.axes[mid] as usize;
+        let diff = q[axis] - p[axis];
+        let (near, far) = if diff < 0.0 { ((lo, mid), (mid + 1, hi)) } else { ((mid + 1, hi), (lo, mid)) };
+        self.search(q, near.0, near.1, best);
+        if diff * diff < *best {
+            self.search(q, far.0, far.1, best);
+        }
     }
 }
 
-fn cell_of(p: &[f32; 3], cell: f32) -> [i32; 3] {
-    p.map(|x| (x / cell).floor().clamp(i32::MIN as f32 / 2.0, i32::MAX as f32 / 2.0) as i32)
+/// Arrange `pts` as an implicit kd-tree (see [`PointIndex`]), recording each node's axis.
+fn build(pts: &mut [[f32; 3]], axes: &mut [u8]) {
+    if pts.len() <= 1 {
+        return;
+    }
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for p in pts.iter() {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    let axis = (0..3).max_by(|&a, &b| (hi[a] - lo[a]).total_cmp(&(hi[b] - lo[b]))).unwrap_or(0);
+    let mid = pts.len() / 2;
+    pts.select_nth_unstable_by(mid, |x, y| x[axis].total_cmp(&y[axis]));
+    axes[mid] = axis as u8;
+    let (left, rest) = pts.split_at_mut(mid);
+    let (left_axes, rest_axes) = axes.split_at_mut(mid);
+    build(left, left_axes);
+    build(&mut rest[1..], &mut rest_axes[1..]);
 }
 
 /// The Chamfer distance between point sets `a` and `b`, metres.

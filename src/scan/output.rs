@@ -1,12 +1,16 @@
-//! The output directory of a scan or reconstruction:
+//! The output directory of a scan or reconstruction (the stored-scan layout; see the README's
+//! "Stored scans"):
 //!
 //! ```text
-//! DIR/frames/pos_000.png ...   captured frames (scans only), written as they arrive
-//! DIR/frames/pos_000.json ...  how each frame was taken (angle, lights, sequence), written after it
-//! DIR/model.ply                binary PLY triangle mesh (vertex colours from the photo methods)
+//! DIR/rig.toml                 the effective rig file the scan ran with (scans only)
+//! DIR/frames/pos_NNN*.png ...  each position's raw frames, written as they arrive (scans only)
+//! DIR/frames/pos_NNN.json ...  each position's record (angle, files, lights), written after them
+//! DIR/frames/prepare.json      what a method measured before the positions (structured light)
+//! DIR/model.ply                binary PLY triangle mesh (vertex colours where the method gives them)
 //! DIR/model.stl                binary STL
 //! DIR/model.obj                OBJ
 //! DIR/voxels.ply               occupied voxel centres as a point cloud (coloured by the photo methods)
+//! DIR/cloud.ply                measured points with normals and colours (laser, structured light)
 //! DIR/report.json              written last: a directory is a finished result iff it has one
 //! ```
 //! Every file is written atomically (temporary file, fsync, rename), so a crash or a full disk never
@@ -15,26 +19,16 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use super::report::{GroundTruth, Report, Timings};
+use super::flow::Outcome;
+use super::report::{ground_truth, Report, Timings};
 use super::{ScanError, ScanEvent};
-use crate::acquisition::{AcquisitionSummary, CapturedView};
+use crate::acquisition::AcquisitionSummary;
+use crate::config::{Method, RigConfig};
 use crate::pipeline::export::{self, write_atomic};
-use crate::pipeline::{extract_surface, reprojection_iou, MeshParams, Occupancy, View};
+use crate::pipeline::{reprojection_iou, Occupancy, View};
 
-/// What `frames/pos_NNN.json` records about how frame NNN was taken.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct FrameMeta {
-    /// 0-based position in the plan.
-    pub position: usize,
-    /// Turntable angle reported when the frame was taken, degrees.
-    pub angle_deg: f64,
-    /// Lights that were on, by index.
-    pub lights_on: Vec<usize>,
-    /// The camera's sequence number of the frame.
-    pub sequence: u64,
-    /// Stale frames discarded before it.
-    pub stale_discarded: u32,
-}
+/// The files of an earlier result that [`OutputDir::prepare`] removes (`report.json` first).
+const RESULT_FILES: [&str; 6] = ["model.ply", "model.stl", "model.obj", "voxels.ply", "cloud.ply", "rig.toml"];
 
 /// A prepared output directory.
 #[derive(Debug)]
@@ -42,30 +36,39 @@ pub struct OutputDir {
     path: PathBuf,
 }
 
-/// Everything [`OutputDir::write_results`] needs.
+/// The simulated scene a result is compared with.
+#[derive(Debug)]
+pub struct TruthRef<'a> {
+    /// The scene (object frame, metres).
+    pub scene: &'a crate::sim::Scene,
+    /// Its name in the rig file (`[sim] scene`).
+    pub scene_name: &'a str,
+    /// Its true occupancy on the result's grid.
+    pub occupancy: &'a Occupancy,
+}
+
+/// Everything [`OutputDir::write_outcome`] needs.
 pub struct Results<'a> {
     /// Rig name or data set.
     pub source: String,
-    /// Method name.
-    pub method: &'static str,
-    /// The carved occupancy.
-    pub occupancy: &'a Occupancy,
-    /// Cameras (in the grid's frame) and silhouettes of the views used.
-    pub views: &'a [View<'a>],
-    /// Occupancy smoothing radius for the mesh, voxels.
-    pub smooth_radius: u32,
-    /// Scene name and true occupancy on the same grid, for simulated rigs.
-    pub truth: Option<(&'a str, &'a Occupancy)>,
+    /// The method.
+    pub method: Method,
+    /// The stored scan a reprocess read its views from.
+    pub reprocessed_from: Option<String>,
+    /// What the method produced.
+    pub outcome: Outcome,
+    /// The simulated truth (simulated rigs only).
+    pub truth: Option<TruthRef<'a>>,
     /// Acquisition counters (scans only).
     pub frames: Option<AcquisitionSummary>,
     /// Timings so far.
     pub timings: Timings,
     /// When the job started.
     pub started: Instant,
+    /// When the last view arrived (captured, or replayed from disk).
+    pub last_view_at: Instant,
     /// Progress sink.
     pub events: &'a mut dyn FnMut(ScanEvent),
-    /// Colours and figures of the photo-consistency methods (`None` for space carving).
-    pub photo: Option<super::photo::PhotoOutputs>,
 }
 
 impl std::fmt::Debug for Results<'_> {
@@ -107,13 +110,22 @@ impl OutputDir {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
             Err(e) => return Err(err("cannot remove the previous report.json")(e)),
         }
+        for name in RESULT_FILES {
+            match std::fs::remove_file(path.join(name)) {
+                Ok(()) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                Err(e) => return Err(err("cannot remove a previous result file")(e)),
+            }
+        }
         let frames = path.join("frames");
         if frames.is_dir() {
             for entry in std::fs::read_dir(&frames).map_err(err("cannot list frames/"))? {
                 let entry = entry.map_err(err("cannot list frames/"))?;
                 let name = entry.file_name();
                 let name = name.to_string_lossy();
-                if name.starts_with("pos_") && (name.ends_with(".png") || name.ends_with(".json")) {
+                if (name.starts_with("pos_") && (name.ends_with(".png") || name.ends_with(".json")))
+                    || name == "prepare.json"
+                {
                     std::fs::remove_file(entry.path()).map_err(err("cannot remove a previous frame"))?;
                 }
             }
@@ -135,87 +147,62 @@ impl OutputDir {
         Ok(OutputDir { path: path.to_owned() })
     }
 
-    /// How many leading positions (0, 1, ... k-1, at most `total`) have a complete frame on disk: the
-    /// PNG and its metadata file, which is written after the PNG.
-    pub fn completed_frames(&self, total: usize) -> usize {
-        let dir = self.path.join("frames");
-        (0..total)
-            .take_while(|&i| {
-                dir.join(format!("pos_{i:03}.png")).is_file() && dir.join(format!("pos_{i:03}.json")).is_file()
-            })
-            .count()
-    }
-
-    /// Read back frame `position` and its metadata.
-    pub fn read_frame(&self, position: usize) -> Result<(FrameMeta, image::RgbImage), ScanError> {
-        let dir = self.path.join("frames");
-        let meta_path = dir.join(format!("pos_{position:03}.json"));
-        let bytes = std::fs::read(&meta_path).map_err(|source| ScanError::OutputDir {
-            path: meta_path.clone(),
-            what: "cannot read frame metadata",
-            source,
-        })?;
-        let meta: FrameMeta = serde_json::from_slice(&bytes)
-            .map_err(|source| ScanError::FrameMeta { path: meta_path.clone(), source })?;
-        let png = dir.join(format!("pos_{position:03}.png"));
-        let image = image::open(&png).map_err(|source| ScanError::EncodeFrame { path: png.clone(), source })?.to_rgb8();
-        Ok((meta, image))
-    }
-
     /// The directory.
     pub fn path(&self) -> &Path {
         &self.path
     }
 
-    /// Write one captured frame as `frames/pos_NNN.png`.
-    pub fn write_frame(&self, view: &CapturedView) -> Result<(), ScanError> {
-        let dir = self.path.join("frames");
-        std::fs::create_dir_all(&dir).map_err(|source| ScanError::OutputDir {
-            path: dir.clone(),
-            what: "cannot create it",
-            source,
-        })?;
-        let file = dir.join(format!("pos_{:03}.png", view.position));
-        let mut png = Vec::with_capacity(view.frame.image.len() / 2);
-        view.frame
-            .image
-            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-            .map_err(|source| ScanError::EncodeFrame { path: file.clone(), source })?;
-        write_atomic(&file, &png).map_err(ScanError::Export)?;
-        // The metadata goes last: a position is complete on disk iff its JSON exists.
-        let meta = FrameMeta {
-            position: view.position,
-            angle_deg: view.angle_deg,
-            lights_on: view.lights_on.clone(),
-            sequence: view.frame.sequence,
-            stale_discarded: view.stale_discarded,
+    /// Prepare `path` for the result of reprocessing the stored scan in `scan_dir`: as
+    /// [`OutputDir::prepare`], refusing the stored scan's own directory (its frames would go).
+    pub fn prepare_result(path: &Path, scan_dir: &Path) -> Result<OutputDir, ScanError> {
+        let same = match (std::fs::canonicalize(path), std::fs::canonicalize(scan_dir)) {
+            (Ok(a), Ok(b)) => a == b,
+            _ => path == scan_dir,
         };
-        let json = serde_json::to_vec_pretty(&meta).map_err(ScanError::EncodeReport)?;
-        write_atomic(&dir.join(format!("pos_{:03}.json", view.position)), &json).map_err(ScanError::Export)
+        if same {
+            return Err(ScanError::OverwriteStored { path: path.to_owned() });
+        }
+        OutputDir::prepare(path)
     }
 
-    /// Mesh, export, evaluate, and write `report.json` last.
-    pub fn write_results(&self, r: Results<'_>) -> Result<Report, ScanError> {
+    /// Store the effective rig file as `rig.toml` (calibration already applied, so the file stands
+    /// alone), for resuming and reprocessing.
+    pub fn write_rig_file(&self, config: &RigConfig) -> Result<(), ScanError> {
+        let mut config = config.clone();
+        config.rig.calibration = None;
+        let text = toml::to_string(&config).map_err(ScanError::EncodeRigFile)?;
+        let text = format!(
+            "# The rig file this scan ran with (request overrides and calibration applied), written by scanrig {}.\n{text}",
+            env!("CARGO_PKG_VERSION")
+        );
+        write_atomic(&self.path.join(super::driver::RIG_FILE), text.as_bytes()).map_err(ScanError::Export)
+    }
+
+    /// Export the outcome, evaluate it, and write `report.json` last.
+    pub fn write_outcome(&self, r: Results<'_>) -> Result<Report, ScanError> {
         let Results {
             source,
             method,
-            occupancy,
-            views,
-            smooth_radius,
+            reprocessed_from,
+            outcome,
             truth,
             frames,
             mut timings,
             started,
+            last_view_at,
             events,
-            photo,
         } = r;
-        events(ScanEvent::Stage("mesh"));
-        let t = Instant::now();
-        let mut mesh = extract_surface(occupancy, &MeshParams { smooth_radius }).map_err(ScanError::Mesh)?;
-        if let Some(p) = &photo {
-            mesh.colors = Some(p.mesh_colours(&mesh));
-        }
-        timings.mesh = t.elapsed().as_secs_f64();
+        let Outcome {
+            views: view_count,
+            solid,
+            mesh,
+            cloud,
+            voxel_colours,
+            silhouettes,
+            visual_hull,
+            colour_error,
+            details,
+        } = outcome;
 
         events(ScanEvent::Stage("export"));
         let t = Instant::now();
@@ -223,60 +210,68 @@ impl OutputDir {
         export::write_ply_mesh(&p("model.ply"), &mesh).map_err(ScanError::Export)?;
         export::write_stl(&p("model.stl"), &mesh).map_err(ScanError::Export)?;
         export::write_obj(&p("model.obj"), &mesh).map_err(ScanError::Export)?;
-        let centres = export::voxel_centres(occupancy);
-        let voxel_colours = photo.as_ref().map(|ph| ph.voxel_colours(occupancy));
+        let centres = export::voxel_centres(&solid);
         export::write_ply_points(&p("voxels.ply"), &centres, voxel_colours.as_ref()).map_err(ScanError::Export)?;
+        let mut files = vec!["model.ply".to_owned(), "model.stl".into(), "model.obj".into(), "voxels.ply".into()];
+        if let Some(cloud) = &cloud {
+            cloud.write_ply(&p("cloud.ply")).map_err(ScanError::Export)?;
+            files.push("cloud.ply".into());
+        }
         timings.export = t.elapsed().as_secs_f64();
 
         events(ScanEvent::Stage("evaluate"));
+        let views: Vec<View<'_>> = silhouettes.iter().map(|(camera, mask)| View { camera: *camera, mask }).collect();
         // A view whose mask does not fit its camera cannot reach here (carving rejected it).
-        let reprojection: Vec<f64> = reprojection_iou(occupancy, views).into_iter().map(|v| v.unwrap_or(0.0)).collect();
+        let reprojection: Vec<f64> = reprojection_iou(&solid, &views).into_iter().map(|v| v.unwrap_or(0.0)).collect();
         let mean =
             if reprojection.is_empty() { 0.0 } else { reprojection.iter().sum::<f64>() / reprojection.len() as f64 };
-        let grid = occupancy.grid();
-        let voxel_volume = grid.voxel_size.powi(3);
-        let ground_truth = truth.map(|(scene, truth)| {
-            // Same grid by construction.
-            let overlap = occupancy.iou_and_containment(truth).map_or((0.0, 0.0), |o| (o.iou, o.containment));
-            GroundTruth {
-                scene: scene.to_owned(),
-                iou: overlap.0,
-                containment: overlap.1,
-                voxels: truth.count(),
-                volume_m3: truth.count() as f64 * voxel_volume,
-                chamfer_m: None,
-                chamfer_rel: None,
-                colour_error: photo.as_ref().and_then(|p| p.colour_error),
-            }
+        let grid = *solid.grid();
+        let ground_truth = truth.as_ref().map(|t| {
+            // The surface-measuring methods are judged by their mesh too; a carved hull's mesh is as far
+            // from the truth as its excess volume, which IoU already says (and is slow to measure).
+            let mesh = method.measures_surface().then_some(&mesh);
+            let mut gt = ground_truth(t.scene, t.scene_name, t.occupancy, &solid, mesh);
+            gt.colour_error = colour_error;
+            gt
         });
-        let mut files = vec!["model.ply".to_owned(), "model.stl".into(), "model.obj".into(), "voxels.ply".into()];
+        if let Some(gt) = &ground_truth {
+            tracing::info!(iou = gt.iou, chamfer_rel = gt.chamfer_rel, "result compared with the simulated scene");
+        }
+        let visual_hull = visual_hull.map(|(hull, mut summary)| {
+            if let Some(o) = truth.as_ref().and_then(|t| hull.iou_and_containment(t.occupancy).ok()) {
+                summary.iou = Some(o.iou);
+                summary.containment = Some(o.containment);
+            }
+            summary
+        });
         if frames.is_some() {
             files.push("frames/".into());
+            files.push(super::driver::RIG_FILE.into());
         }
         files.push("report.json".into());
         timings.total = started.elapsed().as_secs_f64();
+        timings.after_last_frame_s = last_view_at.elapsed().as_secs_f64();
         let bbox = grid.bbox();
         let report = Report {
             scanrig_version: env!("CARGO_PKG_VERSION"),
             source,
             method,
-            views: views.len(),
+            reprocessed_from,
+            views: view_count,
             resolution: grid.dims,
             voxel_size_m: grid.voxel_size,
             bbox_m: [bbox.min, bbox.max],
-            occupied_voxels: occupancy.count(),
-            volume_m3: occupancy.count() as f64 * voxel_volume,
+            occupied_voxels: solid.count(),
+            volume_m3: solid.volume_m3(),
             mesh_triangles: mesh.triangles.len(),
             timings_s: timings,
             reprojection_iou: reprojection,
             reprojection_iou_mean: mean,
             frames,
             ground_truth,
-            visual_hull: photo.as_ref().map(|p| p.visual_hull.clone()),
-            photo: photo.map(|p| p.report),
             files,
-            shadow_carving: None,
-            depth_fusion: None,
+            visual_hull,
+            details,
         };
         let json = serde_json::to_vec_pretty(&report).map_err(ScanError::EncodeReport)?;
         write_atomic(&p("report.json"), &json).map_err(ScanError::Export)?;

@@ -6,6 +6,7 @@ use std::time::Instant;
 
 use nalgebra::{Matrix3, Vector3};
 
+use super::methods::silhouette::{outcome_from_hull, HullResult};
 use super::output::{self, OutputDir};
 use super::report::{Report, Timings};
 use super::{ScanError, ScanEvent};
@@ -102,34 +103,29 @@ pub fn run_reconstruct(
     timings.carve = t.elapsed().as_secs_f64();
     tracing::info!(occupied = carver.occupancy().count(), carve_s = timings.carve, "carved");
 
-    let (photo_occupancy, photo) = if opts.method.is_photo() {
-        events(ScanEvent::Stage("photo-consistency"));
-        let t = Instant::now();
-        let mut photo_views = Vec::with_capacity(data.views.len());
+    let mut images = Vec::new();
+    if opts.method.is_photo() {
         for v in &data.views {
-            let image = v.image.as_ref().ok_or_else(|| ReconstructError::NoImage { name: v.name.clone() })?;
-            photo_views.push(crate::pipeline::PhotoView { camera: v.camera, image, mask: Some(&v.mask) });
+            images.push(v.image.as_ref().ok_or_else(|| ReconstructError::NoImage { name: v.name.clone() })?);
         }
-        let (occ, outputs) =
-            super::photo::reconstruct_photo(opts.method, &opts.photo, carver.occupancy(), &photo_views, None)
-                .map_err(ReconstructError::Photo)?;
-        timings.carve += t.elapsed().as_secs_f64();
-        (Some(occ), Some(outputs))
-    } else {
-        (None, None)
-    };
-    let report = out.write_results(output::Results {
+    }
+    let silhouettes: Vec<_> = data.views.iter().map(|v| (v.camera, v.mask.clone())).collect();
+    let silhouette_pixels = silhouettes.iter().map(|(_, m)| m.count() as u64).sum();
+    drop(views);
+    let hull = HullResult { method: opts.method, carver, views: silhouettes, images: &images };
+    let outcome =
+        outcome_from_hull(hull, &opts.photo, opts.smooth_radius, silhouette_pixels, None, &mut timings, events)?;
+    let report = out.write_outcome(output::Results {
         source: opts.dataset.dir.display().to_string(),
-        method: opts.method.name(),
-        occupancy: photo_occupancy.as_ref().unwrap_or(carver.occupancy()),
-        views: &views,
-        smooth_radius: opts.smooth_radius,
+        method: opts.method,
+        reprocessed_from: None,
+        outcome,
         truth: None,
         frames: None,
         timings,
         started,
+        last_view_at: Instant::now(),
         events,
-        photo,
     })?;
     Ok(report)
 }

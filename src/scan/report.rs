@@ -9,8 +9,12 @@ pub struct Report {
     pub scanrig_version: &'static str,
     /// Rig name, or the data set directory for `reconstruct`.
     pub source: String,
-    /// Reconstruction method (`space-carving`).
-    pub method: &'static str,
+    /// Reconstruction method.
+    pub method: crate::config::Method,
+    /// The stored scan whose views were reprocessed into this result (`reconstruct --scan`, the
+    /// daemon's reprocess); absent for a scan.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reprocessed_from: Option<String>,
     /// Number of views used.
     pub views: usize,
     /// Grid size in voxels [nx, ny, nz].
@@ -37,21 +41,43 @@ pub struct Report {
     /// Comparison with the simulated scene (simulated rigs only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ground_truth: Option<GroundTruth>,
-    /// What the photo-consistency methods did.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub photo: Option<PhotoReport>,
     /// Files written, relative to the output directory.
     pub files: Vec<String>,
-    /// The visual hull a refining method (shadow carving, photo-consistency) started from, measured
-    /// like the result.
+    /// The visual hull a refining method (shadow carving, photo-consistency) started from, or the
+    /// hull of a measuring method's silhouettes, measured like the result.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub visual_hull: Option<VisualHull>,
-    /// What shadow carving did (method `shadow-carving` only).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub shadow_carving: Option<crate::scan::shadow::ShadowSummary>,
-    /// What depth fusion did (method `depth-fusion` only).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub depth_fusion: Option<crate::scan::depth::DepthFusionSummary>,
+    /// What the method did: one key named after the method's family (`space_carving`, `photo`,
+    /// `shadow_carving`, `depth_fusion`, `laser`, `structured_light`).
+    #[serde(flatten)]
+    pub details: MethodDetails,
+}
+
+/// The method-specific part of `report.json`, one variant per method family.
+#[derive(Debug, Clone, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MethodDetails {
+    /// `space-carving`.
+    SpaceCarving(CarvingSummary),
+    /// `voxel-coloring`, `space-carving-photo`.
+    Photo(PhotoReport),
+    /// `shadow-carving`.
+    ShadowCarving(crate::scan::methods::shadow::ShadowSummary),
+    /// `depth-fusion`.
+    DepthFusion(crate::scan::methods::depth::DepthFusionSummary),
+    /// `laser`.
+    Laser(crate::scan::methods::laser::LaserSummary),
+    /// `structured-light`.
+    StructuredLight(crate::scan::methods::structured::StructuredLightSummary),
+}
+
+/// What silhouette carving did.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct CarvingSummary {
+    /// Silhouettes carved.
+    pub views: usize,
+    /// Silhouette pixels over all views.
+    pub silhouette_pixels: u64,
 }
 
 /// The visual hull before refinement, compared with the simulated scene where there is one.
@@ -121,6 +147,9 @@ pub struct Timings {
     pub export: f64,
     /// Start to finish.
     pub total: f64,
+    /// From the last frame captured (or the last stored view replayed) to the results on disk: how
+    /// long a user waits after the rig stops.
+    pub after_last_frame_s: f64,
 }
 
 /// How the result compares with the simulated scene's true occupancy on the same grid
@@ -155,25 +184,29 @@ pub struct GroundTruth {
 /// Area-uniform samples per surface for the Chamfer distance of the mesh-producing flows.
 const CHAMFER_SAMPLES: usize = 60_000;
 
-/// Compare a flow's result with the simulated scene: `solid` (its voxels on `grid`) for IoU and
-/// containment, `mesh` (object frame, metres) against samples of the true surface for the symmetric
-/// Chamfer distance. Returns the comparison and the truth voxels (for comparing other results, such as
-/// a visual hull, with the same truth). `scene_name` is the rig's `[sim] scene`.
-pub fn mesh_ground_truth(
+/// Compare a result with the simulated scene: `solid` (its voxels) against `truth` (the scene's
+/// voxels on the same grid) for IoU and containment, and, with `mesh` (object frame, metres), the
+/// symmetric Chamfer distance between the mesh and area-uniform samples of the true surface.
+/// `scene_name` is the rig's `[sim] scene`.
+pub fn ground_truth(
     scene: &crate::sim::Scene,
     scene_name: &str,
-    grid: crate::geometry::VoxelGrid,
+    truth: &crate::pipeline::Occupancy,
     solid: &crate::pipeline::Occupancy,
-    mesh: &crate::pipeline::TriangleMesh,
-) -> (GroundTruth, crate::pipeline::Occupancy) {
+    mesh: Option<&crate::pipeline::TriangleMesh>,
+) -> GroundTruth {
     use crate::pipeline::{chamfer_distance, sample_mesh};
-    let truth = crate::pipeline::Occupancy::from_fn(grid, |p| scene.contains(&p));
-    let overlap = solid.iou_and_containment(&truth).map_or((0.0, 0.0), |o| (o.iou, o.containment));
-    let true_points: Vec<[f32; 3]> =
-        scene.sample_surface(CHAMFER_SAMPLES, 1).iter().map(|(p, _)| [p.x as f32, p.y as f32, p.z as f32]).collect();
-    let chamfer = chamfer_distance(&sample_mesh(mesh, CHAMFER_SAMPLES, 2), &true_points);
+    let overlap = solid.iou_and_containment(truth).map_or((0.0, 0.0), |o| (o.iou, o.containment));
+    let chamfer = mesh.and_then(|mesh| {
+        let true_points: Vec<[f32; 3]> = scene
+            .sample_surface(CHAMFER_SAMPLES, 1)
+            .iter()
+            .map(|(p, _)| [p.x as f32, p.y as f32, p.z as f32])
+            .collect();
+        chamfer_distance(&sample_mesh(mesh, CHAMFER_SAMPLES, 2), &true_points)
+    });
     let diagonal = scene.bounds().diagonal();
-    let gt = GroundTruth {
+    GroundTruth {
         scene: scene_name.to_owned(),
         iou: overlap.0,
         containment: overlap.1,
@@ -182,6 +215,5 @@ pub fn mesh_ground_truth(
         chamfer_m: chamfer.map(|c| c.symmetric_m),
         chamfer_rel: chamfer.filter(|_| diagonal > 0.0).map(|c| c.symmetric_m / diagonal),
         colour_error: None,
-    };
-    (gt, truth)
+    }
 }

@@ -19,7 +19,7 @@ use futures_util::{Stream, StreamExt};
 use serde_json::json;
 use tokio_util::sync::CancellationToken;
 
-use super::jobs::{JobError, Jobs, StartRequest};
+use super::jobs::{JobError, Jobs, ReprocessRequest, StartRequest};
 use super::metrics::Metrics;
 use super::rig::{error_chain, RigError, RigHandle};
 use super::store::{valid_id, StoreError};
@@ -80,6 +80,7 @@ impl From<JobError> for ApiError {
             JobError::Busy(_) => ApiError::new(StatusCode::CONFLICT, "busy", msg),
             JobError::Invalid { .. } => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "invalid_request", msg),
             JobError::WrongState { .. } => ApiError::new(StatusCode::CONFLICT, "wrong_state", msg),
+            JobError::StoredConfig { .. } => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "stored_config", msg),
             JobError::Store(StoreError::NotFound(_)) => ApiError::new(StatusCode::NOT_FOUND, "not_found", msg),
             JobError::Store(_) => ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "store", msg),
         }
@@ -109,6 +110,8 @@ pub fn router(state: AppState) -> Router {
         .route("/scans/{id}/pause", post(pause_scan))
         .route("/scans/{id}/resume", post(resume_scan))
         .route("/scans/{id}/cancel", post(cancel_scan))
+        .route("/scans/{id}/reprocess", post(reprocess_scan))
+        .route("/methods", get(list_methods))
         .route("/scans/{id}/files/{*path}", get(scan_file))
         .route("/events", get(events))
         .route("/preview", get(preview));
@@ -153,7 +156,8 @@ async fn status(State(s): State<AppState>) -> Json<serde_json::Value> {
         "running": s.jobs.running(),
         "progress": s.jobs.progress(),
         "defaults": {
-            "method": config.reconstruction.method.name(),
+            "method": config.reconstruction.method,
+            "resolution": config.reconstruction.resolution,
             "positions": config.scan.positions,
             "lights": config.scan.lights,
         },
@@ -208,8 +212,25 @@ async fn resume_scan(
     Path(id): Path<String>,
 ) -> Result<(StatusCode, Json<serde_json::Value>), ApiError> {
     check_id(&id)?;
-    let meta = s.jobs.resume(&s.config(), &id)?;
+    let meta = s.jobs.resume(&id)?;
     Ok((StatusCode::ACCEPTED, Json(json!(meta))))
+}
+
+async fn reprocess_scan(
+    State(s): State<AppState>,
+    Path(id): Path<String>,
+    body: Result<Json<ReprocessRequest>, JsonRejection>,
+) -> Result<(StatusCode, Json<serde_json::Value>), ApiError> {
+    check_id(&id)?;
+    let Json(req) = body?;
+    let meta = s.jobs.reprocess(&id, req)?;
+    Ok((StatusCode::ACCEPTED, Json(json!(meta))))
+}
+
+/// Every method with whether this rig can run it and, if not, what is missing.
+async fn list_methods(State(s): State<AppState>) -> Json<serde_json::Value> {
+    let config = s.config();
+    Json(json!({ "default": config.reconstruction.method, "methods": super::jobs::methods(&config) }))
 }
 
 async fn cancel_scan(State(s): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, ApiError> {
@@ -218,14 +239,23 @@ async fn cancel_scan(State(s): State<AppState>, Path(id): Path<String>) -> Resul
     Ok(Json(json!({ "id": id, "requested": "cancel" })))
 }
 
-/// Serves `model.ply|stl|obj`, `voxels.ply`, `report.json`, `meta.json` and `frames/pos_NNN.png|json`.
+/// Serves `model.ply|stl|obj`, `voxels.ply`, `cloud.ply`, `report.json`, `meta.json`, `rig.toml`,
+/// `frames/pos_NNN*.png|json` and `frames/prepare.json`.
 async fn scan_file(State(s): State<AppState>, Path((id, path)): Path<(String, String)>) -> Result<Response, ApiError> {
     check_id(&id)?;
     let allowed = match path.split_once('/') {
         None => matches!(
             path.as_str(),
-            "model.ply" | "model.stl" | "model.obj" | "voxels.ply" | "report.json" | "meta.json"
+            "model.ply"
+                | "model.stl"
+                | "model.obj"
+                | "voxels.ply"
+                | "cloud.ply"
+                | "report.json"
+                | "meta.json"
+                | "rig.toml"
         ),
+        Some(("frames", "prepare.json")) => true,
         Some(("frames", name)) => {
             name.starts_with("pos_")
                 && (name.ends_with(".png") || name.ends_with(".json"))
@@ -245,7 +275,7 @@ async fn scan_file(State(s): State<AppState>, Path((id, path)): Path<(String, St
     let mime = match path.rsplit('.').next() {
         Some("png") => "image/png",
         Some("json") => "application/json",
-        Some("obj") => "text/plain; charset=utf-8",
+        Some("obj" | "toml") => "text/plain; charset=utf-8",
         Some("stl") => "model/stl",
         _ => "application/octet-stream",
     };

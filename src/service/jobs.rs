@@ -1,6 +1,10 @@
-//! Scan jobs: at most one scan runs at a time; start, pause (stop at a step boundary, resumable),
-//! resume (from the last complete frame on disk), cancel. Progress is published on a watch channel.
+//! Scan jobs: at most one job runs at a time: a scan on the rig, or the reprocessing of a stored scan
+//! (no hardware). Start (any method the rig's devices allow, chosen per scan), pause (stop at a step
+//! boundary, resumable), resume (replaying the views on disk and acquiring the rest), reprocess (a
+//! stored scan's views with other settings, into a new scan entry), cancel. Every job runs the one
+//! scan driver ([`crate::scan::run_job`]). Progress is published on a watch channel.
 
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -37,34 +41,61 @@ pub struct ProgressSnapshot {
     pub remaining_s: Option<f64>,
 }
 
-/// What a client may ask for when starting a scan; missing fields take the rig file's values.
+/// What a client may ask for when starting a scan; missing fields take the rig file's values. The
+/// result goes through the same [`RigConfig::validate`] as the rig file.
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StartRequest {
-    /// Reconstruction method; must equal the rig file's (space carving or a photo method).
-    pub method: Option<String>,
-    /// Turntable positions, 3..=720.
+    /// Reconstruction method (any the rig's devices allow: see `GET /api/v1/methods`).
+    pub method: Option<Method>,
+    /// Turntable positions.
     pub positions: Option<u32>,
     /// Lights on for each frame, by index.
     pub lights: Option<Vec<usize>>,
+    /// Voxels along the working volume's longest side.
+    pub resolution: Option<u32>,
+}
+
+/// What a client may change when reprocessing a stored scan; missing fields keep the scan's own.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReprocessRequest {
+    /// Reconstruction method (one the stored views serve: a silhouette scan's frames serve the
+    /// photo methods too).
+    pub method: Option<Method>,
+    /// Voxels along the working volume's longest side.
+    pub resolution: Option<u32>,
+    /// Occupancy smoothing radius of the mesh, voxels.
+    pub smooth_radius: Option<u32>,
+}
+
+/// Whether this rig can run a method, for `GET /api/v1/methods`.
+#[derive(Debug, Clone, Serialize)]
+pub struct MethodInfo {
+    /// The method.
+    pub method: Method,
+    /// Whether a scan with it can start on this rig.
+    pub available: bool,
+    /// What is missing (a device, a calibration, a setting), each as `key: problem`.
+    pub missing: Vec<String>,
 }
 
 /// Why a job request was refused.
 #[derive(Debug, thiserror::Error)]
 pub enum JobError {
-    /// A scan is already running.
+    /// A job is already running.
     #[error("scan {0} is already running")]
     Busy(String),
     /// The request is not acceptable.
     #[error("invalid request: {field}: {problem}")]
     Invalid {
         /// The offending field.
-        field: &'static str,
+        field: String,
         /// What is wrong with it.
-        problem: &'static str,
+        problem: String,
     },
     /// The scan is not in a state that allows this.
-    #[error("scan {id} is {status:?}; cannot {action}")]
+    #[error("scan {id} is {status}; cannot {action}")]
     WrongState {
         /// The scan.
         id: String,
@@ -73,9 +104,57 @@ pub enum JobError {
         /// What was asked.
         action: &'static str,
     },
+    /// The rig file stored with a scan cannot be read back.
+    #[error("scan {id}: its stored rig file")]
+    StoredConfig {
+        /// The scan.
+        id: String,
+        /// Why.
+        #[source]
+        source: crate::config::ConfigError,
+    },
     /// The store failed.
     #[error("scan store")]
     Store(#[source] StoreError),
+}
+
+/// `config` with the method `method`: the problems [`RigConfig::validate`] finds, as
+/// `(key, message)`, empty when the rig can run it.
+fn problems_with(config: &RigConfig) -> Vec<(String, String)> {
+    config.validate().into_iter().map(|p| (p.key, p.message)).collect()
+}
+
+/// Refuse `config` unless it validates; the error names every problem.
+fn validated(config: RigConfig) -> Result<RigConfig, JobError> {
+    let problems = problems_with(&config);
+    match problems.first() {
+        None => Ok(config),
+        Some((key, _)) => Err(JobError::Invalid {
+            field: key.clone(),
+            problem: problems.iter().map(|(k, m)| format!("{k}: {m}")).collect::<Vec<_>>().join("; "),
+        }),
+    }
+}
+
+/// The methods `config`'s rig can run, and what the others miss.
+pub fn methods(config: &RigConfig) -> Vec<MethodInfo> {
+    Method::ALL
+        .iter()
+        .map(|&method| {
+            let mut c = config.clone();
+            c.reconstruction.method = method;
+            let missing: Vec<String> = problems_with(&c).into_iter().map(|(k, m)| format!("{k}: {m}")).collect();
+            MethodInfo { method, available: missing.is_empty(), missing }
+        })
+        .collect()
+}
+
+/// What a launched job runs.
+enum Work {
+    /// A scan on the rig (`resume`: replay the stored views first).
+    Scan { config: RigConfig, resume: bool },
+    /// The views of the stored scan in `source` reconstructed again, without hardware.
+    Reprocess { config: RigConfig, source: PathBuf },
 }
 
 struct Active {
@@ -138,83 +217,87 @@ impl Jobs {
     /// Start a new scan with `config` adjusted by `req`.
     pub fn start(&self, config: &RigConfig, req: StartRequest) -> Result<ScanMeta, JobError> {
         let mut config = config.clone();
-        if let Some(m) = &req.method {
-            if m != config.reconstruction.method.name() {
-                return Err(JobError::Invalid {
-                    field: "method",
-                    problem: "the method is the rig file's `reconstruction.method`; change it there and reload",
-                });
-            }
-        }
-        // The daemon's scan job runs the silhouette pipeline (space carving and the photo methods);
-        // the methods with their own acquisition run through `scanrig scan` for now. Refuse them
-        // rather than run something else under their name.
-        if matches!(config.reconstruction.method, Method::ShadowCarving | Method::DepthFusion | Method::StructuredLight)
-        {
-            return Err(JobError::Invalid {
-                field: "method",
-                problem:
-                    "shadow-carving, depth-fusion and structured-light scans run with `scanrig scan`, not yet in the \
-                          daemon",
-            });
-        }
-        if config.reconstruction.method == Method::Laser {
-            return Err(JobError::Invalid {
-                field: "method",
-                problem: "laser scans run with `scanrig scan`, not yet in the daemon",
-            });
+        if let Some(m) = req.method {
+            config.reconstruction.method = m;
         }
         if let Some(n) = req.positions {
-            if !(3..=720).contains(&n) {
-                return Err(JobError::Invalid { field: "positions", problem: "must be 3..=720" });
-            }
             config.scan.positions = n;
         }
         if let Some(l) = req.lights {
-            let count = config.lights.as_ref().map_or(0, |l| l.lights.len());
-            if l.iter().any(|&i| i >= count) || l.len() > 64 {
-                return Err(JobError::Invalid { field: "lights", problem: "index out of range" });
-            }
             config.scan.lights = l;
         }
+        if let Some(r) = req.resolution {
+            config.reconstruction.resolution = r;
+        }
+        let config = validated(config)?;
         let mut active = self.active.lock().map_err(|_| JobError::Busy(String::new()))?;
         if let Some(a) = active.as_ref() {
             return Err(JobError::Busy(a.id.clone()));
         }
-        let meta = self
-            .store
-            .create(
-                &config.rig.name,
-                config.reconstruction.method.name(),
-                config.scan.positions,
-                config.scan.lights.clone(),
-            )
-            .map_err(JobError::Store)?;
-        self.launch(&mut active, meta.clone(), config, false);
+        let meta = self.store.create(&config, None).map_err(JobError::Store)?;
+        self.launch(&mut active, meta.clone(), Work::Scan { config, resume: false });
         Ok(meta)
     }
 
-    /// Resume a paused, interrupted or failed scan from its last complete frame, with `config`'s
-    /// devices and the plan recorded in the scan.
-    pub fn resume(&self, config: &RigConfig, id: &str) -> Result<ScanMeta, JobError> {
+    /// Resume a paused, interrupted or failed scan: its stored views are replayed and the missing
+    /// positions acquired with the rig file stored in the scan (its plan and method) on this rig.
+    pub fn resume(&self, id: &str) -> Result<ScanMeta, JobError> {
         let mut active = self.active.lock().map_err(|_| JobError::Busy(String::new()))?;
         if let Some(a) = active.as_ref() {
             return Err(JobError::Busy(a.id.clone()));
         }
         let mut meta = self.store.get(id).map_err(JobError::Store)?;
-        if !meta.status.resumable() {
+        if !meta.status.resumable() || meta.reprocess_of.is_some() {
             return Err(JobError::WrongState { id: id.to_owned(), status: meta.status, action: "resume" });
         }
-        let mut config = config.clone();
-        config.scan.positions = meta.positions;
-        config.scan.lights.clone_from(&meta.lights);
+        let config = self.stored_config(id)?;
         meta.status = ScanStatus::Running;
         meta.error = None;
         meta.resumes += 1;
         meta.updated_unix = super::store::now_unix();
         self.store.save(&meta).map_err(JobError::Store)?;
-        self.launch(&mut active, meta.clone(), config, true);
+        self.launch(&mut active, meta.clone(), Work::Scan { config, resume: true });
         Ok(meta)
+    }
+
+    /// Reconstruct the stored views of scan `id` again with `req`'s settings into a new scan entry
+    /// (`reprocess_of` = `id`), leaving the original untouched.
+    pub fn reprocess(&self, id: &str, req: ReprocessRequest) -> Result<ScanMeta, JobError> {
+        let source = self.store.get(id).map_err(JobError::Store)?;
+        if source.status == ScanStatus::Running {
+            return Err(JobError::WrongState { id: id.to_owned(), status: source.status, action: "reprocess" });
+        }
+        let mut config = self.stored_config(id)?;
+        let stored_method = config.reconstruction.method;
+        if let Some(m) = req.method {
+            if !views_serve(stored_method, m) {
+                return Err(JobError::Invalid {
+                    field: "method".into(),
+                    problem: format!("the views of a {stored_method} scan cannot be reconstructed with {m}"),
+                });
+            }
+            config.reconstruction.method = m;
+        }
+        if let Some(r) = req.resolution {
+            config.reconstruction.resolution = r;
+        }
+        if let Some(r) = req.smooth_radius {
+            config.reconstruction.mesh.smooth_radius = r;
+        }
+        let config = validated(config)?;
+        let mut active = self.active.lock().map_err(|_| JobError::Busy(String::new()))?;
+        if let Some(a) = active.as_ref() {
+            return Err(JobError::Busy(a.id.clone()));
+        }
+        let meta = self.store.create(&config, Some(id)).map_err(JobError::Store)?;
+        self.launch(&mut active, meta.clone(), Work::Reprocess { config, source: self.store.dir(id) });
+        Ok(meta)
+    }
+
+    /// The rig file stored with scan `id`.
+    fn stored_config(&self, id: &str) -> Result<RigConfig, JobError> {
+        crate::config::load(&self.store.dir(id).join(crate::scan::driver::RIG_FILE))
+            .map_err(|source| JobError::StoredConfig { id: id.to_owned(), source })
     }
 
     /// Pause the running scan `id` at the next step boundary.
@@ -263,11 +346,16 @@ impl Jobs {
         }
     }
 
-    fn launch(&self, active: &mut Option<Active>, meta: ScanMeta, config: RigConfig, resume: bool) {
+    fn launch(&self, active: &mut Option<Active>, meta: ScanMeta, work: Work) {
         let cancel = CancelToken::new();
         let pause = Arc::new(AtomicBool::new(false));
         *active = Some(Active { id: meta.id.clone(), cancel: cancel.clone(), pause: pause.clone() });
         self.metrics.scans_started.fetch_add(1, Ordering::Relaxed);
+        let (config, what) = match &work {
+            Work::Scan { config, resume: true } => (config, "resuming"),
+            Work::Scan { config, .. } => (config, "starting"),
+            Work::Reprocess { config, .. } => (config, "reprocessing"),
+        };
         let total = config.scan.positions as usize;
         let id = meta.id.clone();
         let started = Instant::now();
@@ -277,48 +365,32 @@ impl Jobs {
             step: 0,
             total,
             stage: "starting".into(),
-            message: if resume { "resuming".into() } else { "starting".into() },
+            message: format!("{what}: {}", config.reconstruction.method),
             elapsed_s: 0.0,
             remaining_s: None,
         });
-        let progress = self.progress.clone();
-        let metrics = self.metrics.clone();
-        let mut first_new: Option<(usize, Instant)> = None;
-        let events = Box::new(move |e: ScanEvent| {
-            progress.send_modify(|p| {
-                p.elapsed_s = started.elapsed().as_secs_f64();
-                match &e {
-                    ScanEvent::Acquisition(a) => {
-                        p.stage = format!("{:?}", a.stage).to_ascii_lowercase();
-                        p.message = format!("position {} of {}: {}", (a.step + 1).min(a.total), a.total, p.stage);
-                    }
-                    ScanEvent::ViewProcessed { position, occupied } => {
-                        p.step = position + 1;
-                        p.stage = "carving".into();
-                        p.message = format!("view {} carved, {occupied} voxels left", position + 1);
-                        metrics.frames.fetch_add(1, Ordering::Relaxed);
-                        // The pace of views captured in this run (reused ones come instantly).
-                        let (k0, t0) = *first_new.get_or_insert((p.step, Instant::now()));
-                        let done = p.step.saturating_sub(k0);
-                        if done > 0 {
-                            let per = t0.elapsed().as_secs_f64() / done as f64;
-                            p.remaining_s = Some(per * p.total.saturating_sub(p.step) as f64);
-                        }
-                    }
-                    ScanEvent::Stage(s) => {
-                        p.stage = (*s).to_owned();
-                        p.message = format!("reconstruction: {s}");
-                        p.remaining_s = Some(0.0);
-                    }
-                }
-            });
-        });
-        let job = ScanJob { out: self.store.dir(&id), resume, config: Arc::new(config), cancel, events };
+        let events = progress_sink(self.progress.clone(), self.metrics.clone(), started);
+        let out = self.store.dir(&id);
         let this = self.clone();
-        tokio::spawn(async move {
-            let result = this.rig.scan(job).await;
-            this.finish(&id, result, pause.load(Ordering::SeqCst), started);
-        });
+        match work {
+            Work::Scan { config, resume } => {
+                let job = ScanJob { out, resume, config: Arc::new(config), cancel, events };
+                tokio::spawn(async move {
+                    let result = this.rig.scan(job).await;
+                    this.finish(&id, result, pause.load(Ordering::SeqCst), started);
+                });
+            }
+            Work::Reprocess { config, source } => {
+                tokio::spawn(async move {
+                    let job = tokio::task::spawn_blocking(move || {
+                        let mut events = events;
+                        crate::scan::reprocess(&config, &source, &out, &cancel, &mut *events).map_err(RigError::Scan)
+                    });
+                    let result = job.await.unwrap_or(Err(RigError::Stopped));
+                    this.finish(&id, result, pause.load(Ordering::SeqCst), started);
+                });
+            }
+        }
     }
 
     fn finish(&self, id: &str, result: Result<crate::scan::Report, RigError>, paused: bool, started: Instant) {
@@ -349,7 +421,7 @@ impl Jobs {
         }
         // Record the status and free the slot under one lock, so that a client who sees the scan
         // finished can start the next one at once (no 409 in between).
-        let mut active = self.active.lock().unwrap_or_else(|p| p.into_inner());
+        let mut active = self.active.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         if let Err(e) = self.store.set_status(id, status, error.clone()) {
             tracing::error!(scan = id, error = %error_chain(&e), "cannot record the scan's status");
         }
@@ -358,7 +430,7 @@ impl Jobs {
         self.progress.send_modify(|p| {
             p.status = Some(status);
             p.elapsed_s = started.elapsed().as_secs_f64();
-            p.stage = format!("{status:?}").to_ascii_lowercase();
+            p.stage = status.to_string();
             p.message = error.unwrap_or_else(|| p.stage.clone());
             if status == ScanStatus::Complete {
                 p.step = p.total;
@@ -368,4 +440,54 @@ impl Jobs {
             }
         });
     }
+}
+
+/// Whether the stored views of a `stored` scan can be reconstructed with `wanted`: the same method,
+/// or another of the silhouette methods (their views are the same frames).
+fn views_serve(stored: Method, wanted: Method) -> bool {
+    let silhouette = |m: Method| matches!(m, Method::SpaceCarving | Method::VoxelColoring | Method::SpaceCarvingPhoto);
+    stored == wanted || (silhouette(stored) && silhouette(wanted))
+}
+
+/// The progress sink of a job: turns scan events into the published snapshot.
+fn progress_sink(
+    progress: Arc<watch::Sender<ProgressSnapshot>>,
+    metrics: Arc<Metrics>,
+    started: Instant,
+) -> Box<dyn FnMut(ScanEvent) + Send> {
+    let mut first_new: Option<(usize, Instant)> = None;
+    Box::new(move |e: ScanEvent| {
+        progress.send_modify(|p| {
+            p.elapsed_s = started.elapsed().as_secs_f64();
+            match &e {
+                ScanEvent::Acquisition(a) => {
+                    p.stage = a.stage.to_string();
+                    p.message = format!("position {} of {}: {}", (a.step + 1).min(a.total), a.total, p.stage);
+                }
+                ScanEvent::ViewProcessed { position, total, message } => {
+                    p.step = position + 1;
+                    p.total = *total;
+                    p.stage = "processing".into();
+                    p.message = format!("view {} of {total}: {message}", position + 1);
+                    metrics.frames.fetch_add(1, Ordering::Relaxed);
+                    // The pace of views captured and processed in this run (replayed ones come fast).
+                    let (k0, t0) = *first_new.get_or_insert((p.step, Instant::now()));
+                    let done = p.step.saturating_sub(k0);
+                    if done > 0 {
+                        let per = t0.elapsed().as_secs_f64() / done as f64;
+                        p.remaining_s = Some(per * p.total.saturating_sub(p.step) as f64);
+                    }
+                }
+                ScanEvent::Stage(s) => {
+                    p.stage = (*s).to_owned();
+                    if p.step >= p.total {
+                        p.message = format!("reconstruction: {s}");
+                        p.remaining_s = Some(0.0);
+                    } else {
+                        p.message = format!("view {} of {}: {s}", p.step + 1, p.total);
+                    }
+                }
+            }
+        });
+    })
 }

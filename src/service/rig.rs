@@ -463,7 +463,13 @@ impl DeviceThread {
         let rig = self.rig.as_mut().ok_or(RigError::NotConnected)?;
         let span = tracing::info_span!("scan", out = %job.out.display(), resume = job.resume);
         let _enter = span.enter();
-        let result = scan::run_scan_with_rig(rig, &job.config, &job.out, job.resume, &job.cancel, &mut *job.events);
+        let result = scan::run_job(scan::Job {
+            config: &job.config,
+            out: &job.out,
+            source: scan::Source::Rig { rig, resume: job.resume },
+            cancel: &job.cancel,
+            events: &mut *job.events,
+        });
         if let Err(ScanError::Acquisition(crate::acquisition::AcquisitionError::Device { source, .. })) = &result {
             self.device_error(source);
         }

@@ -11,6 +11,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use serde::{Deserialize, Serialize};
 
+use crate::config::{Method, RigConfig};
 use crate::pipeline::export::{write_atomic, ExportError};
 
 /// Where a scan is in its life.
@@ -31,6 +32,19 @@ pub enum ScanStatus {
     Interrupted,
 }
 
+impl std::fmt::Display for ScanStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            ScanStatus::Running => "running",
+            ScanStatus::Paused => "paused",
+            ScanStatus::Complete => "complete",
+            ScanStatus::Failed => "failed",
+            ScanStatus::Cancelled => "cancelled",
+            ScanStatus::Interrupted => "interrupted",
+        })
+    }
+}
+
 impl ScanStatus {
     /// Whether the scan can be resumed.
     pub fn resumable(self) -> bool {
@@ -49,7 +63,13 @@ pub struct ScanMeta {
     /// Rig name from the config.
     pub rig: String,
     /// Reconstruction method.
-    pub method: String,
+    pub method: Method,
+    /// Voxels along the working volume's longest side.
+    #[serde(default)]
+    pub resolution: u32,
+    /// The stored scan whose views this entry reconstructs again (a reprocess, no acquisition).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reprocess_of: Option<String>,
     /// Turntable positions planned.
     pub positions: u32,
     /// Lights on for each frame, by index.
@@ -146,8 +166,9 @@ impl ScanStore {
         self.root.join(id)
     }
 
-    /// Create a new scan directory and its `meta.json` with status `running`.
-    pub fn create(&self, rig: &str, method: &str, positions: u32, lights: Vec<usize>) -> Result<ScanMeta, StoreError> {
+    /// Create a new scan directory and its `meta.json` with status `running`, for a scan with the
+    /// effective configuration `config`, or for reprocessing the stored scan `reprocess_of`.
+    pub fn create(&self, config: &RigConfig, reprocess_of: Option<&str>) -> Result<ScanMeta, StoreError> {
         let now = now_unix();
         loop {
             let n = self.counter.fetch_add(1, Ordering::SeqCst);
@@ -158,10 +179,12 @@ impl ScanStore {
                     let meta = ScanMeta {
                         id,
                         status: ScanStatus::Running,
-                        rig: rig.to_owned(),
-                        method: method.to_owned(),
-                        positions,
-                        lights,
+                        rig: config.rig.name.clone(),
+                        method: config.reconstruction.method,
+                        positions: config.scan.positions,
+                        lights: config.scan.lights.clone(),
+                        resolution: config.reconstruction.resolution,
+                        reprocess_of: reprocess_of.map(str::to_owned),
                         created_unix: now,
                         updated_unix: now,
                         resumes: 0,
@@ -234,14 +257,19 @@ impl ScanStore {
 mod tests {
     use super::*;
 
+    fn config() -> RigConfig {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/simulated.toml");
+        crate::config::load(&path).expect("shipped rig")
+    }
+
     #[test]
     fn running_scans_become_interrupted_on_reopen_and_finished_ones_complete() {
         let dir = tempfile::tempdir().expect("tempdir");
         let (store, interrupted) = ScanStore::open(dir.path()).expect("open");
         assert!(interrupted.is_empty());
-        let a = store.create("rig", "space-carving", 8, vec![0]).expect("create");
-        let b = store.create("rig", "space-carving", 8, vec![0]).expect("create");
-        let c = store.create("rig", "space-carving", 8, vec![0]).expect("create");
+        let a = store.create(&config(), None).expect("create");
+        let b = store.create(&config(), None).expect("create");
+        let c = store.create(&config(), None).expect("create");
         store.set_status(&c.id, ScanStatus::Cancelled, None).expect("status");
         std::fs::write(store.dir(&b.id).join("report.json"), b"{}").expect("report");
         drop(store);
@@ -266,7 +294,7 @@ mod tests {
     fn a_corrupt_meta_is_skipped_by_list() {
         let dir = tempfile::tempdir().expect("tempdir");
         let (store, _) = ScanStore::open(dir.path()).expect("open");
-        let a = store.create("rig", "space-carving", 8, vec![]).expect("create");
+        let a = store.create(&config(), None).expect("create");
         std::fs::create_dir_all(store.dir("scan-bad")).expect("mkdir");
         std::fs::write(store.dir("scan-bad").join("meta.json"), b"{not json").expect("write");
         let list = store.list().expect("list");

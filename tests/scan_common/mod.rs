@@ -44,3 +44,16 @@ pub fn run_scan(rig: &Path, out: &Path) -> serde_json::Value {
 pub fn num(report: &serde_json::Value, section: &str, key: &str) -> f64 {
     report[section][key].as_f64().unwrap_or_else(|| panic!("{section}.{key} missing in {report}"))
 }
+
+/// A rig file derived from the rig file at `base` (any path) with textual replacements (each must
+/// match), written to `dir/rig.toml`.
+pub fn derived_rig_from(base: &Path, dir: &Path, replace: &[(&str, &str)]) -> PathBuf {
+    let mut text = std::fs::read_to_string(base).expect("rig readable");
+    for (from, to) in replace {
+        assert!(text.contains(from), "{} has no `{from}`", base.display());
+        text = text.replacen(from, to, 1);
+    }
+    let path = dir.join("rig.toml");
+    std::fs::write(&path, text).expect("write rig");
+    path
+}

@@ -84,7 +84,7 @@ pub trait ControlBackend {
 }
 
 /// The manual settings of a scan; `None` leaves a control as the device has it.
-#[derive(Debug, Clone, Default, PartialEq, serde::Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct ManualControls {
     /// Exposure time, microseconds; sets auto exposure to manual.

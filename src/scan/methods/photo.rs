@@ -11,7 +11,6 @@ use std::collections::HashMap;
 
 use nalgebra::Vector3;
 
-use super::report::{PhotoReport, VisualHull};
 use crate::config::{Method, PhotoConfig};
 use crate::geometry::VoxelGrid;
 use crate::pipeline::photo_consistency::UNSEEN_COLOUR;
@@ -19,6 +18,7 @@ use crate::pipeline::{
     carve_photo, color_voxels, colour_surface, reprojection_error, ColouredSurface, Occupancy, PhotoError, PhotoParams,
     PhotoView, TriangleMesh,
 };
+use crate::scan::report::{PhotoReport, VisualHull};
 
 /// The pipeline parameters of a `[reconstruction.photo]` section.
 pub fn photo_params(c: &PhotoConfig) -> PhotoParams {

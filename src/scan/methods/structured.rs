@@ -19,20 +19,18 @@
 //! zero crossing. On a simulated rig the report compares the mesh with the scene
 //! (`ground_truth.chamfer_rel` = symmetric Chamfer distance / bounding-box diagonal, voxel IoU).
 //!
-//! Frames are written as `frames/pos_NNN_white.png` (the fully lit frame) and
-//! `frames/pos_NNN_columns.png` (16-bit decoded projector column, 65535 = none).
+//! Every captured frame is stored as `frames/pos_NNN_pattern_KK.png` (RGB, in projection order), and
+//! the measured projector response, when compensation is on, as `frames/prepare.json`, so a scan can
+//! be resumed and its captures decoded again with other settings.
 
-use std::path::Path;
 use std::time::Instant;
 
-use super::report::{mesh_ground_truth, Report, Timings, VisualHull};
-use super::{ScanError, ScanEvent};
+use super::frame_name;
 use crate::acquisition::{self, CancelToken, PatternStack};
 use crate::config::structured_light::{exposure_frames, PhaseUnwrapping, StripeCoding, StructuredLightConfig};
-use crate::config::{ProjectorConfig, RigConfig};
-use crate::devices::{build_rig, Pattern};
+use crate::config::{Method, ProjectorConfig, RigConfig, ScanPlan};
+use crate::devices::{Pattern, Rig};
 use crate::geometry::{CameraModel, VoxelGrid};
-use crate::pipeline::export::{self, write_atomic};
 use crate::pipeline::structured_light::debruijn::{DeBruijnDecodeParams, DeBruijnStripes};
 use crate::pipeline::structured_light::gamma::{calibration_levels, GammaError, ResponseCurve};
 use crate::pipeline::structured_light::phase::{PhaseDecodeParams, PhaseShiftPatterns, Unwrapping};
@@ -45,6 +43,10 @@ use crate::pipeline::{
     extract_surface, CarveError, CloudError, DepthFusionError, FusionParams, Mask, MeshParams, PointCloud, SpaceCarver,
     Tsdf,
 };
+use crate::scan::flow::{Finish, FrameDir, Outcome, PositionView, ScanFlow, Sequence, ViewRecord};
+use crate::scan::report::{MethodDetails, Timings, VisualHull};
+use crate::scan::{ScanError, ScanEvent};
+use crate::sim::SimWorld;
 
 /// Why the structured-light part of a scan failed.
 #[derive(Debug, thiserror::Error)]
@@ -141,8 +143,8 @@ pub enum StructuredLightError {
     Hull(#[source] CarveError),
 }
 
-/// The measured projector-camera response, for `report.json`.
-#[derive(Debug, Clone, Default, serde::Serialize)]
+/// The measured projector-camera response, for `report.json` and `frames/prepare.json`.
+#[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
 pub struct ResponseSummary {
     /// Fitted exponent of the projector's input-to-light response (1 = linear).
     pub gamma: f64,
@@ -273,7 +275,7 @@ fn uniform_pattern(level: u8, width: u32, height: u32) -> Pattern {
 /// levels to the luma of the pixels lit with at least `min_contrast` grey levels (the object and
 /// any lit background).
 fn measure_response(
-    rig: &mut crate::devices::Rig,
+    rig: &mut Rig,
     plan: &crate::config::ScanPlan,
     projector: &CameraModel,
     hold: std::time::Duration,
@@ -285,7 +287,7 @@ fn measure_response(
         levels.iter().map(|&l| uniform_pattern(l, projector.width, projector.height)).collect();
     let one = crate::config::ScanPlan { positions: 1, ..plan.clone() };
     let (tx, rx) = std::sync::mpsc::sync_channel(1);
-    acquisition::run_structured_light_scan_held(rig, &one, &patterns, hold, &tx, cancel, &mut |_| {})
+    acquisition::run_structured_light_scan(rig, &one, 0, &patterns, hold, &tx, cancel, &mut |_| {})
         .map_err(StructuredLightError::ResponseCapture)?;
     drop(tx);
     let stack = rx.recv().map_err(|_| {
@@ -386,26 +388,6 @@ fn fusion_depth(range: &RangeImage, white_grey: &[u8], free_below: u8) -> Vec<f3
         .collect()
 }
 
-fn write_png<P: image::Pixel<Subpixel = S> + image::PixelWithColorType, S: image::Primitive>(
-    file: &Path,
-    width: u32,
-    height: u32,
-    data: Vec<S>,
-) -> Result<(), ScanError>
-where
-    [S]: image::EncodableLayout,
-{
-    let encode_err = |source| ScanError::EncodeFrame { path: file.to_owned(), source };
-    let image = image::ImageBuffer::<P, Vec<S>>::from_raw(width, height, data).ok_or_else(|| {
-        encode_err(image::ImageError::Parameter(image::error::ParameterError::from_kind(
-            image::error::ParameterErrorKind::DimensionMismatch,
-        )))
-    })?;
-    let mut png = Vec::new();
-    image.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png).map_err(encode_err)?;
-    write_atomic(file, &png).map_err(ScanError::Export)
-}
-
 /// Distances from each point of `range` to the true surface along its camera ray (`camera` in the
 /// object frame): `(sum, sum of squares, count)`, metres. A point whose ray misses the scene is
 /// skipped (it cannot be scored).
@@ -428,337 +410,403 @@ fn point_errors(camera: &CameraModel, range: &RangeImage, scene: &crate::sim::Sc
     (sum, sq, n)
 }
 
-/// Scan the rig described by `config` with structured light and write the results into `out`.
-pub fn run_structured_light_scan(
-    config: &RigConfig,
-    out: &Path,
-    cancel: &CancelToken,
-    events: &mut dyn FnMut(ScanEvent),
-) -> Result<Report, ScanError> {
-    let started = Instant::now();
-    let sl_err = ScanError::StructuredLight;
-    let settings = &config.reconstruction.structured_light;
-    let projector = projector_model(config).ok_or(sl_err(StructuredLightError::NoProjector))?;
-    let (seq, used) =
-        projected_patterns(&projector, settings).map_err(|e| sl_err(StructuredLightError::Patterns(e)))?;
-    let set =
-        pattern_set(projector.width, projector.height, settings).map_err(|e| sl_err(StructuredLightError::Codes(e)))?;
-    let frame_period_ms = config.projector.as_ref().map_or(0.0, ProjectorConfig::frame_period_ms);
-    // Validation refuses an exposure that is not a whole number of refreshes; this re-check keeps a
-    // hand-built config from reaching the sequencer with one.
-    let hold = match settings.exposure_ms {
-        Some(e) => {
-            let frames = exposure_frames(e, frame_period_ms)
-                .ok_or(sl_err(StructuredLightError::Exposure { exposure_ms: e, frame_period_ms }))?;
-            let hold_ms = if frame_period_ms > 0.0 { f64::from(frames) * frame_period_ms } else { e };
-            std::time::Duration::from_secs_f64(hold_ms / 1000.0)
-        }
-        None => std::time::Duration::ZERO,
-    };
+/// What `frames/prepare.json` holds: the response measured before the positions.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Prepared {
+    response: ResponseSummary,
+}
 
-    let out_dir = super::OutputDir::prepare(out)?;
-    let out = out_dir.path().to_owned();
-    let frames_dir = out.join("frames");
-    std::fs::create_dir_all(&frames_dir).map_err(|source| ScanError::OutputDir {
-        path: frames_dir.clone(),
-        what: "cannot create it",
-        source,
-    })?;
-    let mut rig = build_rig(config).map_err(ScanError::OpenDevices)?;
-    let sim = rig.sim.clone();
-    // Gamma: measure the response first, then pre-distort the fringes with its inverse.
-    let mut response = None;
-    let mut lut = None;
-    if settings.gamma_compensation {
-        events(ScanEvent::Stage("projector response"));
-        let mut r = measure_response(&mut rig, &config.scan, &projector, hold, settings.gamma_min_contrast, cancel)
-            .map_err(sl_err)?;
-        if matches!(set, Some(PatternSet::PhaseShift(..))) {
-            lut = Some(ResponseCurve { gamma: r.gamma, black: r.black, white: r.white }.compensation_lut());
-            r.compensated = true;
-        }
-        response = Some(r);
+impl PositionView for PatternStack {
+    fn position(&self) -> usize {
+        self.position
     }
-    // The projected sequence: the Gray/binary stripes as before; any other coding's patterns (RGB,
-    // through the LUT) followed by one full-white frame, which gives the points their colour, the
-    // dark-background free-space test and the visual hull (a one-shot De Bruijn scan thus takes the
-    // coded frame plus a white frame per position).
-    let white_rgb = uniform_pattern(255, projector.width, projector.height);
-    let patterns: Vec<Pattern> = match &set {
-        None => used
-            .iter()
-            .map(|&i| seq.render(i).map(|g| to_pattern(&g, projector.width, projector.height)))
-            .collect::<Result<_, _>>()
-            .map_err(|e| sl_err(StructuredLightError::Patterns(e)))?,
-        Some(set) => (0..set.count())
-            .map(|i| {
-                set.render_rgb(i, lut.as_ref()).map(|rgb| Pattern {
-                    width: projector.width,
-                    height: projector.height,
-                    rgb: std::sync::Arc::new(rgb),
-                })
-            })
-            .chain(std::iter::once(Ok(white_rgb)))
-            .collect::<Result<_, _>>()
-            .map_err(|e| sl_err(StructuredLightError::Codes(e)))?,
-    };
-    let recon = &config.reconstruction;
-    let grid = VoxelGrid::from_resolution(&recon.bbox(), recon.resolution);
-    let fusion = FusionParams {
-        truncation_m: settings.truncation_voxels * grid.voxel_size,
-        max_weight: 64.0,
-        missing_is_free: true,
-    };
-    let mut tsdf = Tsdf::new(grid, fusion).map_err(|e| sl_err(StructuredLightError::Fusion(e)))?;
-    // For comparison: the visual hull of the white frames' silhouettes (pixels not darker than
-    // `free_below`), what space carving alone would give. Only with a background level.
-    let mut hull = if settings.free_below > 0 {
-        Some(SpaceCarver::new(grid).map_err(|e| sl_err(StructuredLightError::Hull(e)))?)
-    } else {
-        None
-    };
-    let camera = config.camera.model();
-    let tri = TriangulationParams {
-        max_ray_gap_m: settings.max_ray_gap_m,
-        min_neighbours: settings.min_neighbours,
-        neighbour_tolerance_m: settings.neighbour_tolerance_m,
-    };
-    let mut summary = StructuredLightSummary {
-        coding: settings.coding,
-        phase: (settings.coding == StripeCoding::PhaseShift).then(|| PhaseSummary {
-            steps: settings.steps,
-            periods_px: settings.periods_px.clone(),
-            unwrapping: settings.unwrapping,
-        }),
-        response,
-        exposure_ms: settings.exposure_ms,
-        rows: settings.rows,
-        subpixel: settings.subpixel && set.is_none(),
-        patterns_per_position: patterns.len(),
-        pixels_per_view: camera.width as usize * camera.height as usize,
-        truncation_m: fusion.truncation_m,
-        ..Default::default()
-    };
-    let mut cloud = PointCloud::new();
-    let mut map = ProjectorMap::new();
-    let mut timings = Timings::default();
-    let (mut err_sum, mut err_sq, mut err_n) = (0.0f64, 0.0f64, 0usize);
+    fn angle_deg(&self) -> f64 {
+        self.angle_deg
+    }
+    fn sequence(&self) -> u64 {
+        self.frames.first().map_or(0, |f| f.sequence)
+    }
+    fn stale_discarded(&self) -> u32 {
+        self.stale_discarded
+    }
+}
 
-    let plan = config.scan.clone();
-    let (frames, capture_s) = super::acquire_and_process(
-        &mut rig,
-        |rig, tx, progress| {
-            acquisition::run_structured_light_scan_held(rig, &plan, &patterns, hold, tx, cancel, progress)
-        },
-        events,
-        |stack: PatternStack, events| {
-            let position = stack.position;
-            if stack.frames.len() != patterns.len() {
-                return Err(sl_err(StructuredLightError::FrameCount {
+/// Structured light.
+#[derive(Debug)]
+pub struct StructuredLightFlow {
+    plan: ScanPlan,
+    settings: StructuredLightConfig,
+    projector: CameraModel,
+    camera: CameraModel,
+    seq: GrayCodePatterns,
+    used: Vec<usize>,
+    set: Option<PatternSet>,
+    hold: std::time::Duration,
+    /// The projected sequence (with the response compensation once it is known).
+    patterns: Vec<Pattern>,
+    tri: TriangulationParams,
+    smooth_radius: u32,
+    tsdf: Tsdf,
+    hull: Option<SpaceCarver>,
+    summary: StructuredLightSummary,
+    cloud: PointCloud,
+    map: ProjectorMap,
+    world: Option<SimWorld>,
+    errors: (f64, f64, usize),
+    timings: Timings,
+}
+
+impl StructuredLightFlow {
+    /// The flow of `config` (method `structured-light`); `world` is the simulated scene, if any, for
+    /// the triangulation error of each point.
+    pub fn new(config: &RigConfig, world: Option<&SimWorld>) -> Result<StructuredLightFlow, ScanError> {
+        let sl_err = ScanError::StructuredLight;
+        let settings = config.reconstruction.structured_light.clone();
+        let projector = projector_model(config).ok_or(sl_err(StructuredLightError::NoProjector))?;
+        let (seq, used) =
+            projected_patterns(&projector, &settings).map_err(|e| sl_err(StructuredLightError::Patterns(e)))?;
+        let set = pattern_set(projector.width, projector.height, &settings)
+            .map_err(|e| sl_err(StructuredLightError::Codes(e)))?;
+        let frame_period_ms = config.projector.as_ref().map_or(0.0, ProjectorConfig::frame_period_ms);
+        // Validation refuses an exposure that is not a whole number of refreshes; this re-check keeps
+        // a hand-built config from reaching the sequencer with one.
+        let hold = match settings.exposure_ms {
+            Some(e) => {
+                let frames = exposure_frames(e, frame_period_ms)
+                    .ok_or(sl_err(StructuredLightError::Exposure { exposure_ms: e, frame_period_ms }))?;
+                let hold_ms = if frame_period_ms > 0.0 { f64::from(frames) * frame_period_ms } else { e };
+                std::time::Duration::from_secs_f64(hold_ms / 1000.0)
+            }
+            None => std::time::Duration::ZERO,
+        };
+        let recon = &config.reconstruction;
+        let grid = VoxelGrid::from_resolution(&recon.bbox(), recon.resolution);
+        let fusion = FusionParams {
+            truncation_m: settings.truncation_voxels * grid.voxel_size,
+            max_weight: 64.0,
+            missing_is_free: true,
+        };
+        // For comparison: the visual hull of the white frames' silhouettes (pixels not darker than
+        // `free_below`), what space carving alone would give. Only with a background level.
+        let hull = if settings.free_below > 0 {
+            Some(SpaceCarver::new(grid).map_err(|e| sl_err(StructuredLightError::Hull(e)))?)
+        } else {
+            None
+        };
+        let camera = config.camera.model();
+        let tri = TriangulationParams {
+            max_ray_gap_m: settings.max_ray_gap_m,
+            min_neighbours: settings.min_neighbours,
+            neighbour_tolerance_m: settings.neighbour_tolerance_m,
+        };
+        let mut flow = StructuredLightFlow {
+            plan: config.scan.clone(),
+            projector,
+            camera,
+            seq,
+            used,
+            hold,
+            patterns: Vec::new(),
+            tri,
+            smooth_radius: recon.mesh.smooth_radius,
+            tsdf: Tsdf::new(grid, fusion).map_err(|e| sl_err(StructuredLightError::Fusion(e)))?,
+            hull,
+            summary: StructuredLightSummary {
+                coding: settings.coding,
+                phase: (settings.coding == StripeCoding::PhaseShift).then(|| PhaseSummary {
+                    steps: settings.steps,
+                    periods_px: settings.periods_px.clone(),
+                    unwrapping: settings.unwrapping,
+                }),
+                exposure_ms: settings.exposure_ms,
+                rows: settings.rows,
+                subpixel: settings.subpixel && set.is_none(),
+                pixels_per_view: camera.width as usize * camera.height as usize,
+                truncation_m: fusion.truncation_m,
+                ..Default::default()
+            },
+            set,
+            settings,
+            cloud: PointCloud::new(),
+            map: ProjectorMap::new(),
+            world: world.cloned(),
+            errors: (0.0, 0.0, 0),
+            timings: Timings::default(),
+        };
+        flow.render(None)?;
+        Ok(flow)
+    }
+
+    /// Lay out the projected sequence: the Gray/binary stripes as they are; any other coding's
+    /// patterns (RGB, through `lut`) followed by one full-white frame, which gives the points their
+    /// colour, the dark-background free-space test and the visual hull (a one-shot De Bruijn scan thus
+    /// takes the coded frame plus a white frame per position).
+    fn render(&mut self, lut: Option<&[u8; 256]>) -> Result<(), ScanError> {
+        let sl_err = ScanError::StructuredLight;
+        let (w, h) = (self.projector.width, self.projector.height);
+        self.patterns = match &self.set {
+            None => self
+                .used
+                .iter()
+                .map(|&i| self.seq.render(i).map(|g| to_pattern(&g, w, h)))
+                .collect::<Result<_, _>>()
+                .map_err(|e| sl_err(StructuredLightError::Patterns(e)))?,
+            Some(set) => (0..set.count())
+                .map(|i| {
+                    set.render_rgb(i, lut).map(|rgb| Pattern { width: w, height: h, rgb: std::sync::Arc::new(rgb) })
+                })
+                .chain(std::iter::once(Ok(uniform_pattern(255, w, h))))
+                .collect::<Result<_, _>>()
+                .map_err(|e| sl_err(StructuredLightError::Codes(e)))?,
+        };
+        self.summary.patterns_per_position = self.patterns.len();
+        Ok(())
+    }
+
+    /// Take the measured response: reported, and the phase-shift fringes pre-distorted with its
+    /// inverse.
+    fn use_response(&mut self, mut response: ResponseSummary) -> Result<(), ScanError> {
+        if matches!(self.set, Some(PatternSet::PhaseShift(..))) {
+            let lut = ResponseCurve { gamma: response.gamma, black: response.black, white: response.white }
+                .compensation_lut();
+            response.compensated = true;
+            self.render(Some(&lut))?;
+        }
+        self.summary.response = Some(response);
+        Ok(())
+    }
+}
+
+impl ScanFlow for StructuredLightFlow {
+    type View = PatternStack;
+
+    fn method(&self) -> Method {
+        Method::StructuredLight
+    }
+
+    fn restore(&mut self, frames: &FrameDir) -> Result<bool, ScanError> {
+        if !self.settings.gamma_compensation {
+            return Ok(true);
+        }
+        match frames.read_json::<Prepared>("prepare.json")? {
+            Some(p) => {
+                self.use_response(p.response)?;
+                Ok(true)
+            }
+            None => Ok(false),
+        }
+    }
+
+    fn prepare(
+        &mut self,
+        rig: &mut Rig,
+        frames: &FrameDir,
+        cancel: &CancelToken,
+        events: &mut dyn FnMut(ScanEvent),
+    ) -> Result<(), ScanError> {
+        if !self.settings.gamma_compensation {
+            return Ok(());
+        }
+        events(ScanEvent::Stage("measuring the projector response"));
+        let response =
+            measure_response(rig, &self.plan, &self.projector, self.hold, self.settings.gamma_min_contrast, cancel)
+                .map_err(ScanError::StructuredLight)?;
+        frames.write_json("prepare.json", &Prepared { response: response.clone() })?;
+        self.use_response(response)
+    }
+
+    fn sequence(&self, first: usize) -> Sequence<PatternStack> {
+        let plan = self.plan.clone();
+        let patterns = self.patterns.clone();
+        let hold = self.hold;
+        Box::new(move |rig, tx, cancel, progress| {
+            acquisition::run_structured_light_scan(rig, &plan, first, &patterns, hold, tx, cancel, progress)
+        })
+    }
+
+    fn save(&self, frames: &FrameDir, stack: &PatternStack) -> Result<(Vec<String>, Vec<usize>), ScanError> {
+        let files = stack
+            .frames
+            .iter()
+            .enumerate()
+            .map(|(k, f)| frames.write_rgb(&frame_name(stack.position, &format!("_pattern_{k:02}.png")), &f.image))
+            .collect::<Result<_, _>>()?;
+        Ok((files, self.plan.lights.clone()))
+    }
+
+    fn load(&self, frames: &FrameDir, record: &ViewRecord) -> Result<PatternStack, ScanError> {
+        let p = record.position;
+        let mut stack = PatternStack {
+            position: p,
+            angle_deg: record.angle_deg,
+            frames: Vec::with_capacity(self.patterns.len()),
+            visible_at: Vec::with_capacity(self.patterns.len()),
+            stale_discarded: record.stale_discarded,
+        };
+        for k in 0..self.patterns.len() {
+            let image = frames.read_rgb(&frame_name(p, &format!("_pattern_{k:02}.png")))?;
+            stack.frames.push(super::stored_frame(image, record.sequence));
+            stack.visible_at.push(Instant::now());
+        }
+        Ok(stack)
+    }
+
+    fn process(&mut self, stack: PatternStack, events: &mut dyn FnMut(ScanEvent)) -> Result<String, ScanError> {
+        let sl_err = ScanError::StructuredLight;
+        let position = stack.position;
+        let camera = self.camera;
+        let expected = self.patterns.len();
+        if stack.frames.len() != expected {
+            return Err(sl_err(StructuredLightError::FrameCount { position, expected, found: stack.frames.len() }));
+        }
+        let mut greys = Vec::with_capacity(stack.frames.len());
+        for (index, f) in stack.frames.iter().enumerate() {
+            if f.image.width() != camera.width || f.image.height() != camera.height {
+                return Err(sl_err(StructuredLightError::FrameSize {
                     position,
-                    expected: patterns.len(),
-                    found: stack.frames.len(),
+                    index,
+                    width: camera.width,
+                    height: camera.height,
+                    found_width: f.image.width(),
+                    found_height: f.image.height(),
                 }));
             }
-            let mut greys = Vec::with_capacity(stack.frames.len());
-            for (index, f) in stack.frames.iter().enumerate() {
-                if f.image.width() != camera.width || f.image.height() != camera.height {
-                    return Err(sl_err(StructuredLightError::FrameSize {
-                        position,
-                        index,
-                        width: camera.width,
-                        height: camera.height,
-                        found_width: f.image.width(),
-                        found_height: f.image.height(),
-                    }));
-                }
-                if set.is_none() {
-                    greys.push(image::imageops::grayscale(&f.image).into_raw());
-                }
+            if self.set.is_none() {
+                greys.push(image::imageops::grayscale(&f.image).into_raw());
             }
+        }
+        events(ScanEvent::Stage("decoding"));
+        let t = Instant::now();
+        let (coords, white, white_grey) = match &self.set {
+            None => {
+                let coords =
+                    decode_stack(&self.seq, &self.used, &greys, &camera, &self.settings, position, &mut self.map)
+                        .map_err(sl_err)?;
+                (coords, &stack.frames[stack.frames.len() - 2].image, greys.swap_remove(greys.len() - 2))
+            }
+            Some(set) => {
+                let (white, coded) = stack.frames.split_last().ok_or(sl_err(StructuredLightError::FrameCount {
+                    position,
+                    expected,
+                    found: 0,
+                }))?;
+                let normalised;
+                let captures: Vec<&[u8]> = if let PatternSet::DeBruijn(..) = set {
+                    normalised = albedo_normalised(coded[0].image.as_raw(), white.image.as_raw());
+                    vec![normalised.as_slice()]
+                } else {
+                    coded.iter().map(|f| f.image.as_raw().as_slice()).collect()
+                };
+                let coords = set
+                    .decode(&captures, camera.width as usize, camera.height as usize)
+                    .map_err(|source| sl_err(StructuredLightError::CodesDecode { position, source }))?;
+                let white_grey = image::imageops::grayscale(&white.image).into_raw();
+                (coords, &white.image, white_grey)
+            }
+        };
+        self.summary.decode_s += t.elapsed().as_secs_f64();
+        events(ScanEvent::Stage("triangulating"));
+        let t = Instant::now();
+        // Both models in the object frame at this view's angle: the points come out there.
+        let cam = camera.for_turntable_angle(stack.angle_deg);
+        let proj = self.projector.for_turntable_angle(stack.angle_deg);
+        let range = triangulate(&cam, &proj, &coords, Some(white), &self.tri)
+            .map_err(|source| sl_err(StructuredLightError::Triangulate { position, source }))?;
+        self.summary.triangulate_s += t.elapsed().as_secs_f64();
+        self.summary.decoded.push(range.decoded);
+        self.summary.outliers += range.outliers;
+        let (mut pts, mut nrm, mut col) = (Vec::new(), Vec::new(), Vec::new());
+        for (p, n, c) in range.valid_points() {
+            pts.push(p);
+            nrm.push(n);
+            col.push(c);
+        }
+        let points = pts.len();
+        self.summary.points_per_view.push(points);
+        let view =
+            PointCloud::from_parts(pts, Some(nrm), Some(col)).map_err(|e| sl_err(StructuredLightError::Cloud(e)))?;
+        self.cloud.extend(view);
+        if let Some(world) = &self.world {
+            let (sum, sq, n) = point_errors(&cam, &range, world.scene());
+            self.errors.0 += sum;
+            self.errors.1 += sq;
+            self.errors.2 += n;
+        }
+        events(ScanEvent::Stage("fusing"));
+        let t = Instant::now();
+        let depth = fusion_depth(&range, &white_grey, self.settings.free_below);
+        self.tsdf.integrate(&cam, &depth).map_err(|e| sl_err(StructuredLightError::Fusion(e)))?;
+        self.summary.integrate_s += t.elapsed().as_secs_f64();
+        if let Some(hull) = self.hull.as_mut() {
             let t = Instant::now();
-            let (coords, white, white_grey) = match &set {
-                None => {
-                    let coords =
-                        decode_stack(&seq, &used, &greys, &camera, settings, position, &mut map).map_err(sl_err)?;
-                    (coords, &stack.frames[stack.frames.len() - 2].image, greys.swap_remove(greys.len() - 2))
-                }
-                Some(set) => {
-                    let (white, coded) = stack.frames.split_last().ok_or(sl_err(StructuredLightError::FrameCount {
-                        position,
-                        expected: patterns.len(),
-                        found: 0,
-                    }))?;
-                    let normalised;
-                    let captures: Vec<&[u8]> = if let PatternSet::DeBruijn(..) = set {
-                        normalised = albedo_normalised(coded[0].image.as_raw(), white.image.as_raw());
-                        vec![normalised.as_slice()]
-                    } else {
-                        coded.iter().map(|f| f.image.as_raw().as_slice()).collect()
-                    };
-                    let coords = set
-                        .decode(&captures, camera.width as usize, camera.height as usize)
-                        .map_err(|source| sl_err(StructuredLightError::CodesDecode { position, source }))?;
-                    let white_grey = image::imageops::grayscale(&white.image).into_raw();
-                    (coords, &white.image, white_grey)
-                }
-            };
-            summary.decode_s += t.elapsed().as_secs_f64();
-            let columns: Vec<u16> = match &set {
-                None => map.columns().to_vec(),
-                Some(_) => coords
-                    .column
-                    .iter()
-                    .map(|&c| if (0.0..65535.0).contains(&c) { c as u16 } else { u16::MAX })
-                    .collect(),
-            };
-            write_png::<image::Rgb<u8>, u8>(
-                &frames_dir.join(format!("pos_{position:03}_white.png")),
-                camera.width,
-                camera.height,
-                white.as_raw().clone(),
-            )?;
-            write_png::<image::Luma<u16>, u16>(
-                &frames_dir.join(format!("pos_{position:03}_columns.png")),
-                camera.width,
-                camera.height,
-                columns,
-            )?;
-            let t = Instant::now();
-            // Both models in the object frame at this view's angle: the points come out there.
-            let cam = camera.for_turntable_angle(stack.angle_deg);
-            let proj = projector.for_turntable_angle(stack.angle_deg);
-            let range = triangulate(&cam, &proj, &coords, Some(white), &tri)
-                .map_err(|source| sl_err(StructuredLightError::Triangulate { position, source }))?;
-            summary.triangulate_s += t.elapsed().as_secs_f64();
-            summary.decoded.push(range.decoded);
-            summary.outliers += range.outliers;
-            let (mut pts, mut nrm, mut col) = (Vec::new(), Vec::new(), Vec::new());
-            for (p, n, c) in range.valid_points() {
-                pts.push(p);
-                nrm.push(n);
-                col.push(c);
-            }
-            summary.points_per_view.push(pts.len());
-            let view = PointCloud::from_parts(pts, Some(nrm), Some(col))
-                .map_err(|e| sl_err(StructuredLightError::Cloud(e)))?;
-            cloud.extend(view);
-            if let Some(world) = &sim {
-                let (sum, sq, n) = point_errors(&cam, &range, world.scene());
-                err_sum += sum;
-                err_sq += sq;
-                err_n += n;
-            }
-            let t = Instant::now();
-            let depth = fusion_depth(&range, &white_grey, settings.free_below);
-            let stats = tsdf.integrate(&cam, &depth).map_err(|e| sl_err(StructuredLightError::Fusion(e)))?;
-            summary.integrate_s += t.elapsed().as_secs_f64();
-            if let Some(hull) = hull.as_mut() {
-                let t = Instant::now();
-                let mask = Mask::from_fn(camera.width, camera.height, |u, v| {
-                    white_grey[(v * camera.width + u) as usize] >= settings.free_below
-                });
-                hull.add_view(&cam, &mask).map_err(|e| sl_err(StructuredLightError::Hull(e)))?;
-                timings.silhouette += t.elapsed().as_secs_f64();
-            }
-            tracing::debug!(position, decoded = range.decoded, total_points = cloud.len(), "view triangulated");
-            events(ScanEvent::ViewProcessed { position, occupied: stats.near_surface });
-            Ok(())
-        },
-    )?;
-    timings.capture = capture_s;
-    timings.carve = summary.decode_s + summary.triangulate_s + summary.integrate_s;
-    let views = summary.decoded.len();
-    let t = Instant::now();
-    summary.merged_outliers = cloud
-        .remove_statistical_outliers(settings.outlier_neighbours, settings.outlier_std_ratio)
-        .map_err(|e| sl_err(StructuredLightError::Cloud(e)))?;
-    summary.merge_s = t.elapsed().as_secs_f64();
-    summary.points = cloud.len();
-    if err_n > 0 {
-        summary.point_error_mean_m = Some(err_sum / err_n as f64);
-        summary.point_error_rms_m = Some((err_sq / err_n as f64).sqrt());
+            let free_below = self.settings.free_below;
+            let mask = Mask::from_fn(camera.width, camera.height, |u, v| {
+                white_grey[(v * camera.width + u) as usize] >= free_below
+            });
+            hull.add_view(&cam, &mask).map_err(|e| sl_err(StructuredLightError::Hull(e)))?;
+            self.timings.silhouette += t.elapsed().as_secs_f64();
+        }
+        tracing::debug!(position, decoded = range.decoded, total_points = self.cloud.len(), "view triangulated");
+        Ok(format!("triangulated: {} pixels decoded, {points} points", range.decoded))
     }
-    summary.valid_fraction = if views == 0 {
-        0.0
-    } else {
-        summary.decoded.iter().sum::<usize>() as f64 / (views * summary.pixels_per_view) as f64
-    };
 
-    events(ScanEvent::Stage("mesh"));
-    let t = Instant::now();
-    let occupancy = tsdf.occupancy();
-    let mut mesh = extract_surface(&occupancy, &MeshParams { smooth_radius: recon.mesh.smooth_radius })
-        .map_err(ScanError::Mesh)?;
-    summary.refined_vertices = tsdf.refine_vertices(&mut mesh);
-    timings.mesh = t.elapsed().as_secs_f64();
-
-    events(ScanEvent::Stage("export"));
-    let t = Instant::now();
-    let p = |name: &str| out.join(name);
-    export::write_ply_mesh(&p("model.ply"), &mesh).map_err(ScanError::Export)?;
-    export::write_stl(&p("model.stl"), &mesh).map_err(ScanError::Export)?;
-    export::write_obj(&p("model.obj"), &mesh).map_err(ScanError::Export)?;
-    cloud.write_ply(&p("cloud.ply")).map_err(ScanError::Export)?;
-    timings.export = t.elapsed().as_secs_f64();
-
-    events(ScanEvent::Stage("evaluate"));
-    let mut hull_overlap = None;
-    let ground_truth = sim.as_ref().map(|world| {
-        let (gt, truth) = mesh_ground_truth(
-            world.scene(),
-            config.sim.as_ref().map_or("", |s| s.scene.as_str()),
-            grid,
-            &occupancy,
-            &mesh,
-        );
-        hull_overlap = hull.as_ref().and_then(|h| h.occupancy().iou_and_containment(&truth).ok());
-        gt
-    });
-    if let Some(gt) = &ground_truth {
-        tracing::info!(iou = gt.iou, chamfer_rel = gt.chamfer_rel, "structured light compared with the scene");
-    }
-    let bbox = grid.bbox();
-    let mut report = Report {
-        scanrig_version: env!("CARGO_PKG_VERSION"),
-        source: config.rig.name.clone(),
-        method: recon.method.name(),
-        views,
-        resolution: grid.dims,
-        voxel_size_m: grid.voxel_size,
-        bbox_m: [bbox.min, bbox.max],
-        occupied_voxels: occupancy.count(),
-        volume_m3: occupancy.volume_m3(),
-        mesh_triangles: mesh.triangles.len(),
-        timings_s: timings,
-        reprojection_iou: Vec::new(),
-        reprojection_iou_mean: 0.0,
-        frames: Some(frames),
-        ground_truth,
-        files: ["model.ply", "model.stl", "model.obj", "cloud.ply", "frames/", "report.json"]
-            .map(str::to_owned)
-            .to_vec(),
-        visual_hull: hull.as_ref().map(|h| VisualHull {
-            iou: hull_overlap.map(|o| o.iou),
-            containment: hull_overlap.map(|o| o.containment),
-            voxels: h.occupancy().count(),
-            volume_m3: h.occupancy().volume_m3(),
+    fn finish(mut self, finish: Finish<'_>) -> Result<Outcome, ScanError> {
+        let sl_err = ScanError::StructuredLight;
+        let Finish { timings, events, .. } = finish;
+        let summary = &mut self.summary;
+        timings.silhouette += self.timings.silhouette;
+        timings.carve += summary.decode_s + summary.triangulate_s + summary.integrate_s;
+        let views = summary.decoded.len();
+        events(ScanEvent::Stage("merging the point clouds"));
+        let t = Instant::now();
+        summary.merged_outliers = self
+            .cloud
+            .remove_statistical_outliers(self.settings.outlier_neighbours, self.settings.outlier_std_ratio)
+            .map_err(|e| sl_err(StructuredLightError::Cloud(e)))?;
+        summary.merge_s = t.elapsed().as_secs_f64();
+        summary.points = self.cloud.len();
+        let (err_sum, err_sq, err_n) = self.errors;
+        if err_n > 0 {
+            summary.point_error_mean_m = Some(err_sum / err_n as f64);
+            summary.point_error_rms_m = Some((err_sq / err_n as f64).sqrt());
+        }
+        summary.valid_fraction = if views == 0 {
+            0.0
+        } else {
+            summary.decoded.iter().sum::<usize>() as f64 / (views * summary.pixels_per_view) as f64
+        };
+        events(ScanEvent::Stage("mesh"));
+        let t = Instant::now();
+        let solid = self.tsdf.occupancy();
+        let mut mesh =
+            extract_surface(&solid, &MeshParams { smooth_radius: self.smooth_radius }).map_err(ScanError::Mesh)?;
+        summary.refined_vertices = self.tsdf.refine_vertices(&mut mesh);
+        timings.mesh = t.elapsed().as_secs_f64();
+        let visual_hull = self.hull.map(|h| {
+            let occ = h.into_occupancy();
+            let summary = VisualHull {
+                iou: None,
+                containment: None,
+                voxels: occ.count(),
+                volume_m3: occ.volume_m3(),
+                colour_error: None,
+                reprojection_error: None,
+            };
+            (occ, summary)
+        });
+        Ok(Outcome {
+            views,
+            solid,
+            mesh,
+            cloud: Some(self.cloud),
+            voxel_colours: None,
+            silhouettes: Vec::new(),
+            visual_hull,
             colour_error: None,
-            reprojection_error: None,
-        }),
-        photo: None,
-        shadow_carving: None,
-        depth_fusion: None,
-    };
-    report.timings_s.total = started.elapsed().as_secs_f64();
-    // The report's common fields, plus this method's own section.
-    let mut json = serde_json::to_value(&report).map_err(ScanError::EncodeReport)?;
-    if let Some(obj) = json.as_object_mut() {
-        obj.insert("structured_light".into(), serde_json::to_value(&summary).map_err(ScanError::EncodeReport)?);
+            details: MethodDetails::StructuredLight(self.summary),
+        })
     }
-    let bytes = serde_json::to_vec_pretty(&json).map_err(ScanError::EncodeReport)?;
-    write_atomic(&p("report.json"), &bytes).map_err(ScanError::Export)?;
-    Ok(report)
 }
 
 #[cfg(test)]
