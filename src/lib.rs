@@ -2,6 +2,7 @@
 //! in process.
 //!
 //! Layers, each with one job; data flows one way: [`devices`] -> [`acquisition`] -> [`pipeline`].
+//! - [`atomic`]: atomic file writing (the bottom layer every writer uses).
 //! - [`config`]: the rig file.
 //! - [`devices`]: device traits, simulated and real drivers, the registry.
 //! - [`sim`]: the simulated rig's world (scene, renderer, ground truth).
@@ -9,9 +10,11 @@
 //! - [`pipeline`]: reconstruction, pure functions over frames and cameras.
 //! - [`geometry`]: camera models and frames.
 //! - [`dataset`]: calibrated image sets on disk (cameras, view selections, masks).
-//! - [`scan`]: one whole scan, from rig file to files on disk.
+//! - [`scan`]: one scan job for every method (the driver, one flow per method), from rig file to
+//!   files on disk.
 
 pub mod acquisition;
+pub mod atomic;
 pub mod calibration;
 pub mod config;
 pub mod dataset;

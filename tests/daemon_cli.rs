@@ -103,4 +103,18 @@ fn cli_status_start_watch_pause_resume_cancel_fetch() {
     assert!(err.contains("wrong_state") && err.contains("cancelled"), "{err}");
     let out = cli("127.0.0.1:9", &["status"], limit);
     assert!(!out.status.success());
+
+    // methods: every method this rig runs; start one by name, then reprocess it at another resolution.
+    let out = ok(&cli(&d.addr, &["methods"], limit));
+    assert_eq!(out.lines().filter(|l| l.ends_with(" available")).count(), 7, "{out}");
+    let out = ok(&cli(&d.addr, &["start", "--method", "depth-fusion", "--positions", "4", "--watch"], limit));
+    assert!(out.contains("method depth-fusion") && out.contains(" complete"), "{out}");
+    let id = out.lines().find_map(|l| l.strip_prefix("started ")).expect("started line").trim().to_owned();
+    let out = ok(&cli(&d.addr, &["reprocess", &id, "--resolution", "32", "--watch"], limit));
+    let again = out.lines().find_map(|l| l.split_once(" as ").map(|(_, r)| r.trim().to_owned())).expect("new id");
+    assert!(out.contains(&format!("{again} complete")), "{out}");
+    let meta = scan_meta(&c, &again);
+    assert_eq!((meta["reprocess_of"].as_str(), meta["resolution"].as_u64()), (Some(id.as_str()), Some(32)));
+    let out = cli(&d.addr, &["start", "--method", "telepathy"], limit);
+    assert!(!out.status.success(), "an unknown method is refused before any request");
 }

@@ -231,4 +231,40 @@ fn the_web_page_shows_status_progress_preview_and_the_model_in_headless_chromium
         std::fs::write(path, &png).expect("write screenshot");
     }
     eprintln!("page state: {state}; screenshot {}x{}, {} colours", img.width(), img.height(), distinct.len());
+
+    // The method choice: every method this rig can run is offered, and the one chosen is scanned.
+    let eval = |b: &mut Browser, js: &str| -> Value {
+        let r = b.call(Some(&session), "Runtime.evaluate", json!({"expression": js, "returnByValue": true}));
+        r["result"]["value"].clone()
+    };
+    let mut offered = Value::Null;
+    wait_for("the method list", Duration::from_secs(10), || {
+        offered = eval(
+            &mut b,
+            "JSON.stringify([...document.getElementById('method').options].map(o => [o.value, o.disabled]))",
+        );
+        offered.as_str().is_some_and(|s| s.contains("laser"))
+    });
+    let offered: Vec<(String, bool)> = serde_json::from_str(offered.as_str().unwrap_or("[]")).expect("options");
+    assert_eq!(offered.len(), 7, "{offered:?}");
+    assert!(offered.iter().all(|(_, disabled)| !disabled), "every method runs on this rig: {offered:?}");
+    eval(
+        &mut b,
+        "document.getElementById('method').value = 'depth-fusion'; \
+         document.getElementById('positions').value = '6'; \
+         document.getElementById('start').click(); 'clicked'",
+    );
+    let mut latest = Value::Null;
+    wait_for("the scan started from the page", Duration::from_secs(20), || {
+        let scans = c.get_json("/api/v1/scans").expect("list");
+        latest = scans["scans"]
+            .as_array()
+            .and_then(|a| a.iter().find(|s| s["id"] != id.as_str()).cloned())
+            .unwrap_or(Value::Null);
+        !latest.is_null()
+    });
+    assert_eq!(latest["method"], "depth-fusion", "{latest}");
+    assert_eq!(latest["positions"], 6, "{latest}");
+    let new_id = latest["id"].as_str().expect("id").to_owned();
+    assert_eq!(wait_finished(&c, &new_id, Duration::from_secs(60))["status"], "complete");
 }

@@ -476,7 +476,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 body["lights"] = l.into();
             }
             let v = c.post_json("/api/v1/scans", &body)?;
-            println!("started {} ({})", v["id"].as_str().unwrap_or("?"), v["method"].as_str().unwrap_or("?"));
+            println!("started {}", v["id"].as_str().unwrap_or("?"));
+            println!("method {}", v["method"].as_str().unwrap_or("?"));
             if watch {
                 watch_progress(&c)?;
             }

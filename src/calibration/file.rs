@@ -37,7 +37,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::{Intrinsics, Matrix3, Pose, Vector3};
-use crate::pipeline::export::{write_atomic, ExportError};
+use crate::atomic::{write_atomic, AtomicWriteError};
 
 /// The file format version this code reads and writes.
 pub const FORMAT_VERSION: u32 = 1;
@@ -196,7 +196,7 @@ pub enum CalibrationFileError {
     },
     /// Writing failed.
     #[error(transparent)]
-    Write(#[from] ExportError),
+    Write(#[from] AtomicWriteError),
 }
 
 fn line_col(text: &str, offset: usize) -> (usize, usize) {

@@ -17,7 +17,7 @@ use super::procam::{
 };
 use super::{BoardSpec, CalibrationError};
 use crate::geometry::Pose;
-use crate::pipeline::export::{write_atomic, ExportError};
+use crate::atomic::{write_atomic, AtomicWriteError};
 use crate::pipeline::structured_light::{load_capture_dir, CaptureError, GrayCodePatterns, PatternError};
 
 /// A projector-camera calibration file.
@@ -89,7 +89,7 @@ pub enum ProcamFileError {
     NoReference,
     /// The output could not be written.
     #[error(transparent)]
-    Write(#[from] ExportError),
+    Write(#[from] AtomicWriteError),
 }
 
 /// What `scanrig calibrate projector` does.
@@ -217,7 +217,7 @@ pub fn run_procam(req: &ProcamRequest) -> Result<ProcamReport, ProcamFileError> 
 /// Write a calibration file atomically (TOML).
 pub fn write_procam_file(path: &Path, file: &ProcamFile) -> Result<(), ProcamFileError> {
     let text = toml::to_string_pretty(file).map_err(|e| {
-        ProcamFileError::Write(ExportError::Io {
+        ProcamFileError::Write(AtomicWriteError {
             path: path.to_path_buf(),
             source: std::io::Error::other(e.to_string()),
         })

@@ -151,3 +151,14 @@ impl DeviceError {
         DeviceError::Unsupported { device: device.to_owned(), operation }
     }
 }
+
+impl From<crate::sim::SimConfigError> for DeviceError {
+    fn from(e: crate::sim::SimConfigError) -> Self {
+        DeviceError::InvalidConfig { device: e.section.to_owned(), field: e.field, problem: e.source.to_string() }
+    }
+}
+
+/// A simulated device's refusal (`SimError`) as the device error of `device` about `field`.
+pub(crate) fn sim_device_error(e: &crate::sim::SimError, device: &str, field: &'static str) -> DeviceError {
+    DeviceError::InvalidConfig { device: device.to_owned(), field, problem: e.to_string() }
+}

@@ -33,7 +33,8 @@ use std::path::Path;
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
 
-use super::export::{write_atomic, ExportError};
+use super::export::ExportError;
+use crate::atomic::write_atomic;
 use super::mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
 use super::occupancy::Occupancy;
 use crate::geometry::{turntable_rotation, Aabb, VoxelGrid};
@@ -406,7 +407,7 @@ impl PointCloud {
 
     /// Write as binary PLY (see [`PointCloud::ply_bytes`]), atomically.
     pub fn write_ply(&self, path: &Path) -> Result<(), ExportError> {
-        write_atomic(path, &self.ply_bytes())
+        Ok(write_atomic(path, &self.ply_bytes())?)
     }
 }
 

@@ -4,8 +4,9 @@
 //! flushed to disk (fsync) and then renamed over the destination, so a reader never sees a partial file.
 //! Coordinates are written as they are stored (metres, the grid's frame).
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
+
+use crate::atomic::{write_atomic, AtomicWriteError};
 
 use super::mesh::TriangleMesh;
 use super::occupancy::Occupancy;
@@ -34,37 +35,10 @@ pub enum ExportError {
     },
 }
 
-/// Whether a file name is one of [`write_atomic`]'s temporary files (`.NAME.tmp-PID`): left behind
-/// only when the writing process died before its rename, so it never holds a complete result.
-pub fn is_atomic_temp(name: &str) -> bool {
-    name.starts_with('.') && name.contains(".tmp-")
-}
-
-/// Write `bytes` to `path` atomically (temporary file in the same directory, fsync, rename).
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ExportError> {
-    let io = |source| ExportError::Io { path: path.to_path_buf(), source };
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
-    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        drop(f);
-        std::fs::rename(&tmp, path)?;
-        if let Ok(d) = std::fs::File::open(&dir) {
-            // Persist the rename; not every platform supports syncing a directory.
-            let _ = d.sync_all();
-        }
-        Ok(())
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
+impl From<AtomicWriteError> for ExportError {
+    fn from(e: AtomicWriteError) -> Self {
+        ExportError::Io { path: e.path, source: e.source }
     }
-    result.map_err(io)
 }
 
 fn check_colors(path: &Path, colors: Option<&Vec<[u8; 3]>>, items: usize) -> Result<(), ExportError> {
@@ -109,7 +83,7 @@ pub fn ply_mesh_bytes(mesh: &TriangleMesh) -> Vec<u8> {
 /// Write a mesh as binary PLY, atomically.
 pub fn write_ply_mesh(path: &Path, mesh: &TriangleMesh) -> Result<(), ExportError> {
     check_colors(path, mesh.colors.as_ref(), mesh.vertices.len())?;
-    write_atomic(path, &ply_mesh_bytes(mesh))
+    Ok(write_atomic(path, &ply_mesh_bytes(mesh))?)
 }
 
 /// Encode a mesh as binary STL (80-byte header, count, per triangle a facet normal and three vertices).
@@ -141,7 +115,7 @@ pub fn stl_bytes(mesh: &TriangleMesh) -> Vec<u8> {
 
 /// Write a mesh as binary STL, atomically (colours are not stored).
 pub fn write_stl(path: &Path, mesh: &TriangleMesh) -> Result<(), ExportError> {
-    write_atomic(path, &stl_bytes(mesh))
+    Ok(write_atomic(path, &stl_bytes(mesh))?)
 }
 
 /// Encode a mesh as OBJ text (`v x y z` or `v x y z r g b` with colours in 0..1, `f` 1-based).
@@ -167,7 +141,7 @@ pub fn obj_bytes(mesh: &TriangleMesh) -> Vec<u8> {
 /// Write a mesh as OBJ, atomically.
 pub fn write_obj(path: &Path, mesh: &TriangleMesh) -> Result<(), ExportError> {
     check_colors(path, mesh.colors.as_ref(), mesh.vertices.len())?;
-    write_atomic(path, &obj_bytes(mesh))
+    Ok(write_atomic(path, &obj_bytes(mesh))?)
 }
 
 /// Encode points as a binary little-endian PLY point cloud (optional RGB).
@@ -195,7 +169,7 @@ pub fn ply_points_bytes(points: &[[f32; 3]], colors: Option<&Vec<[u8; 3]>>) -> V
 /// Write points as a binary PLY point cloud, atomically.
 pub fn write_ply_points(path: &Path, points: &[[f32; 3]], colors: Option<&Vec<[u8; 3]>>) -> Result<(), ExportError> {
     check_colors(path, colors, points.len())?;
-    write_atomic(path, &ply_points_bytes(points, colors))
+    Ok(write_atomic(path, &ply_points_bytes(points, colors))?)
 }
 
 /// The centres of the occupied voxels, metres (the grid's frame).

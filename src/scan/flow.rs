@@ -144,7 +144,7 @@ impl FrameDir {
         encoder
             .write_image(bytes, width, height, colour)
             .map_err(|source| ScanError::EncodeFrame { path: file.clone(), source })?;
-        crate::pipeline::export::write_atomic(&file, &png).map_err(ScanError::Export)
+        crate::atomic::write_atomic(&file, &png).map_err(ScanError::Write)
     }
 
     /// Read an 8-bit RGB image (any format the image crate reads; grey images are expanded).
@@ -162,7 +162,7 @@ impl FrameDir {
     /// Write a JSON document atomically.
     pub fn write_json<T: serde::Serialize>(&self, name: &str, value: &T) -> Result<(), ScanError> {
         let json = serde_json::to_vec_pretty(value).map_err(ScanError::EncodeReport)?;
-        crate::pipeline::export::write_atomic(&self.file(name), &json).map_err(ScanError::Export)
+        crate::atomic::write_atomic(&self.file(name), &json).map_err(ScanError::Write)
     }
 
     /// Read a JSON document; `Ok(None)` when the file does not exist.

@@ -46,6 +46,9 @@ pub enum ScanError {
     /// A result file could not be written.
     #[error("cannot write results")]
     Export(#[source] ExportError),
+    /// A frame, record or report could not be written.
+    #[error("cannot write the scan's files")]
+    Write(#[source] crate::atomic::AtomicWriteError),
     /// A frame could not be encoded as PNG.
     #[error("cannot encode frame {path}")]
     EncodeFrame {
@@ -108,7 +111,7 @@ pub enum ScanError {
     EncodeRigFile(#[source] toml::ser::Error),
     /// The simulated world of a stored scan's rig file could not be built (for its ground truth).
     #[error("cannot build the simulated scene of the stored rig file")]
-    SimWorld(#[source] DeviceError),
+    SimWorld(#[source] crate::sim::SimConfigError),
     /// A frame's metadata file of an interrupted scan cannot be read back.
     #[error("cannot parse frame metadata {path}")]
     FrameMeta {

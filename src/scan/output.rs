@@ -24,7 +24,8 @@ use super::report::{ground_truth, Report, Timings};
 use super::{ScanError, ScanEvent};
 use crate::acquisition::AcquisitionSummary;
 use crate::config::{Method, RigConfig};
-use crate::pipeline::export::{self, write_atomic};
+use crate::atomic::{is_atomic_temp, write_atomic};
+use crate::pipeline::export;
 use crate::pipeline::{reprojection_iou, Occupancy, View};
 
 /// The files of an earlier result that [`OutputDir::prepare`] removes (`report.json` first).
@@ -78,12 +79,12 @@ impl std::fmt::Debug for Results<'_> {
 }
 
 /// Remove the temporary files of atomic writes that a killed process left in `dir` and `dir/frames`
-/// (see [`export::is_atomic_temp`]); complete files are never touched.
+/// (see [`is_atomic_temp`]); complete files are never touched.
 fn remove_partial_writes(dir: &Path) -> Result<(), ScanError> {
     for d in [dir.to_owned(), dir.join("frames")] {
         let Ok(entries) = std::fs::read_dir(&d) else { continue };
         for entry in entries.flatten() {
-            if export::is_atomic_temp(&entry.file_name().to_string_lossy()) {
+            if is_atomic_temp(&entry.file_name().to_string_lossy()) {
                 std::fs::remove_file(entry.path()).map_err(|source| ScanError::OutputDir {
                     path: entry.path(),
                     what: "cannot remove a partial write left by an earlier run",
@@ -175,7 +176,7 @@ impl OutputDir {
             "# The rig file this scan ran with (request overrides and calibration applied), written by scanrig {}.\n{text}",
             env!("CARGO_PKG_VERSION")
         );
-        write_atomic(&self.path.join(super::driver::RIG_FILE), text.as_bytes()).map_err(ScanError::Export)
+        write_atomic(&self.path.join(super::driver::RIG_FILE), text.as_bytes()).map_err(ScanError::Write)
     }
 
     /// Export the outcome, evaluate it, and write `report.json` last.
@@ -274,7 +275,7 @@ impl OutputDir {
             details,
         };
         let json = serde_json::to_vec_pretty(&report).map_err(ScanError::EncodeReport)?;
-        write_atomic(&p("report.json"), &json).map_err(ScanError::Export)?;
+        write_atomic(&p("report.json"), &json).map_err(ScanError::Write)?;
         Ok(report)
     }
 }
@@ -296,6 +297,6 @@ mod tests {
         assert!(!frames.join(".pos_001.json.tmp-4242").exists());
         assert!(!dir.path().join(".model.ply.tmp-4242").exists());
         assert_eq!(out.path(), dir.path());
-        assert!(export::is_atomic_temp(".report.json.tmp-1") && !export::is_atomic_temp("pos_000.png"));
+        assert!(is_atomic_temp(".report.json.tmp-1") && !is_atomic_temp("pos_000.png"));
     }
 }

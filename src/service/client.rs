@@ -201,7 +201,7 @@ pub fn fetch_results(client: &Client, id: &str, out: &std::path::Path) -> Result
     for name in ["report.json", "meta.json", "model.ply", "model.stl", "model.obj", "voxels.ply"] {
         let r = client.request("GET", &format!("/api/v1/scans/{id}/files/{name}"), None).map_err(FetchError::Client)?;
         let path = out.join(name);
-        crate::pipeline::export::write_atomic(&path, &r.body).map_err(FetchError::Export)?;
+        crate::atomic::write_atomic(&path, &r.body).map_err(FetchError::Write)?;
         written.push(name);
     }
     Ok(written)
@@ -224,7 +224,7 @@ pub enum FetchError {
     },
     /// A file cannot be written.
     #[error("cannot write a result file")]
-    Export(#[source] crate::pipeline::export::ExportError),
+    Write(#[source] crate::atomic::AtomicWriteError),
 }
 
 enum HeadError {

@@ -12,7 +12,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 use serde::{Deserialize, Serialize};
 
 use crate::config::{Method, RigConfig};
-use crate::pipeline::export::{write_atomic, ExportError};
+use crate::atomic::{write_atomic, AtomicWriteError};
 
 /// Where a scan is in its life.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -101,7 +101,7 @@ pub enum StoreError {
     },
     /// `meta.json` could not be written.
     #[error("cannot write scan metadata")]
-    Write(#[source] ExportError),
+    Write(#[source] AtomicWriteError),
     /// `meta.json` could not be encoded or parsed.
     #[error("scan metadata {path} is malformed")]
     Json {

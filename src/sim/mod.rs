@@ -19,7 +19,6 @@ pub use rng::SplitMix64;
 pub use scene::{Hit, Material, Primitive, Scene, Solid};
 pub use world::{SimWorld, WorldState};
 
-use crate::devices::DeviceError;
 
 /// Names of the preset scenes for `[sim] scene`.
 pub const SCENE_NAMES: &[&str] = &["sphere", "box", "cup", "pit-block", "textured-box"];
@@ -98,9 +97,15 @@ pub enum SimError {
     },
 }
 
-impl SimError {
-    /// As a device error of `device` about the setting or argument `field`.
-    pub fn to_device_error(&self, device: &str, field: &'static str) -> DeviceError {
-        DeviceError::InvalidConfig { device: device.to_owned(), field, problem: self.to_string() }
-    }
+/// The simulated world cannot be built from the rig file: which section and setting, and why.
+#[derive(Debug, thiserror::Error)]
+#[error("[{section}] {field}: {source}")]
+pub struct SimConfigError {
+    /// The rig-file section (`sim`, `lights`).
+    pub section: &'static str,
+    /// The setting.
+    pub field: &'static str,
+    /// What is wrong.
+    #[source]
+    pub source: SimError,
 }

@@ -9,9 +9,9 @@ use nalgebra::Vector3;
 
 use super::render::{Lighting, LineLaser, PointLight, ProjectorModel, Renderer};
 use super::scene::Scene;
-use super::SimError;
+use super::{SimConfigError, SimError};
 use crate::config::{ProjectorConfig, RigConfig, SimConfig};
-use crate::devices::{DeviceError, Pattern};
+use crate::devices::Pattern;
 
 /// The rig state at one instant, as a camera exposing then would see it.
 #[derive(Debug, Clone)]
@@ -63,8 +63,9 @@ impl SimWorld {
 
     /// Build the world from the rig file: the `[sim]` scene, the `[lights]` geometry and the
     /// `[projector]` calibration.
-    pub fn from_config(sim: &SimConfig, rig: &RigConfig) -> Result<SimWorld, DeviceError> {
-        let scene = Scene::preset(&sim.scene, sim.scale).map_err(|e| e.to_device_error("sim", "scene"))?;
+    pub fn from_config(sim: &SimConfig, rig: &RigConfig) -> Result<SimWorld, SimConfigError> {
+        let scene = Scene::preset(&sim.scene, sim.scale)
+            .map_err(|source| SimConfigError { section: "sim", field: "scene", source })?;
         let (lights, lasers) = match &rig.lights {
             None => (Vec::new(), Vec::new()),
             Some(l) => (
@@ -78,7 +79,11 @@ impl SimWorld {
                         let n = Vector3::from(l.plane_normal);
                         let norm = n.norm();
                         if !(norm.is_finite() && norm > 0.0) {
-                            return Err(SimError::DegenerateLaserPlane.to_device_error("lights", "plane_normal"));
+                            return Err(SimConfigError {
+                                section: "lights",
+                                field: "plane_normal",
+                                source: SimError::DegenerateLaserPlane,
+                            });
                         }
                         Ok(LineLaser { origin_m: Vector3::from(l.origin_m), normal: n / norm, colour: l.colour })
                     })
@@ -93,7 +98,11 @@ impl SimWorld {
             ProjectorConfig::Fbdev(_) => None,
         });
         if !(sim.ambient.is_finite() && (0.0..=1.0).contains(&sim.ambient)) {
-            return Err(SimError::InvalidAmbient { ambient: sim.ambient }.to_device_error("sim", "ambient"));
+            return Err(SimConfigError {
+                section: "sim",
+                field: "ambient",
+                source: SimError::InvalidAmbient { ambient: sim.ambient },
+            });
         }
         let lighting = Lighting { lights, lasers, projector, ambient: sim.ambient, background: sim.background };
         tracing::debug!(scene = %sim.scene, scale = sim.scale, "simulated world built");
@@ -221,20 +230,3 @@ impl SimWorld {
 /// The simulated world is the hardware behind an emulated serial board: a scan through the real
 /// serial code path (`port = "emulator:..."`) turns and lights the same simulated scene. A light or
 /// laser index the scene does not have is a pin with nothing connected: ignored, logged at debug.
-impl crate::devices::serial::EmulatedHardware for SimWorld {
-    fn set_angle(&self, degrees: f64) {
-        self.set_turntable_angle(degrees);
-    }
-
-    fn set_light(&self, index: usize, level: f32) {
-        if let Err(e) = SimWorld::set_light(self, index, level) {
-            tracing::debug!(index, level, error = %e, "emulated board drives a light the scene does not have");
-        }
-    }
-
-    fn set_laser(&self, index: usize, on: bool) {
-        if let Err(e) = SimWorld::set_laser(self, index, on) {
-            tracing::debug!(index, on, error = %e, "emulated board drives a laser the scene does not have");
-        }
-    }
-}

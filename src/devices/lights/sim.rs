@@ -28,13 +28,13 @@ impl super::LightArray for SimLightArray {
     }
 
     fn set_light(&mut self, index: usize, level: f32, _timeout: Duration) -> Result<(), DeviceError> {
-        self.world.set_light(index, level).map_err(|e| e.to_device_error("lights", "light"))?;
+        self.world.set_light(index, level).map_err(|e| crate::devices::sim_device_error(&e, "lights", "light"))?;
         tracing::trace!(index, level, "light set");
         Ok(())
     }
 
     fn set_laser(&mut self, index: usize, on: bool, _timeout: Duration) -> Result<(), DeviceError> {
-        self.world.set_laser(index, on).map_err(|e| e.to_device_error("lights", "laser"))?;
+        self.world.set_laser(index, on).map_err(|e| crate::devices::sim_device_error(&e, "lights", "laser"))?;
         tracing::trace!(index, on, "laser set");
         Ok(())
     }

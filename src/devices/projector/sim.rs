@@ -106,13 +106,13 @@ impl super::Projector for SimProjector {
             },
         };
         let at = self.visible_at(Instant::now());
-        self.world.set_pattern_at(Some(shown), at).map_err(|e| e.to_device_error("projector", "pattern"))?;
+        self.world.set_pattern_at(Some(shown), at).map_err(|e| crate::devices::sim_device_error(&e, "projector", "pattern"))?;
         Ok(at)
     }
 
     fn blank(&mut self, _timeout: Duration) -> Result<(), DeviceError> {
         // Parking must not leave a pattern pending: black from now on, whatever the latency.
-        self.world.set_pattern(None).map_err(|e| e.to_device_error("projector", "pattern"))
+        self.world.set_pattern(None).map_err(|e| crate::devices::sim_device_error(&e, "projector", "pattern"))
     }
 }
 

@@ -31,6 +31,25 @@ pub trait EmulatedHardware: Send + Sync + std::fmt::Debug {
     fn set_laser(&self, index: usize, on: bool);
 }
 
+/// The simulated world turned and lit by an emulated board.
+impl EmulatedHardware for crate::sim::SimWorld {
+    fn set_angle(&self, degrees: f64) {
+        self.set_turntable_angle(degrees);
+    }
+
+    fn set_light(&self, index: usize, level: f32) {
+        if let Err(e) = crate::sim::SimWorld::set_light(self, index, level) {
+            tracing::debug!(index, level, error = %e, "emulated board drives a light the scene does not have");
+        }
+    }
+
+    fn set_laser(&self, index: usize, on: bool) {
+        if let Err(e) = crate::sim::SimWorld::set_laser(self, index, on) {
+            tracing::debug!(index, on, error = %e, "emulated board drives a laser the scene does not have");
+        }
+    }
+}
+
 /// One call made on a [`RecordingHardware`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum HardwareCall {
