@@ -313,6 +313,10 @@ impl RigConfig {
                 check_camera(&mut bad, "camera", c.width, c.height, &c.calibration);
                 crate::devices::hardware::validate_camera(&self.camera, c, &mut bad);
             }
+            CameraConfig::Genicam(c) => {
+                check_camera(&mut bad, "camera", c.width, c.height, &c.calibration);
+                crate::devices::hardware::validate_genicam(c, &mut bad);
+            }
         }
         match &self.projector {
             Some(ProjectorConfig::Sim(p)) => {
