@@ -422,7 +422,14 @@ impl GenicamCamera {
                 c.stream.push(b);
             }
             let at = Instant::now();
-            c.camera.execute("TriggerSoftware").map_err(|e| arv_error("TriggerSoftware", e))?;
+            if let Err(e) = c.camera.execute("TriggerSoftware") {
+                // A refused command on a camera that still answers is a protocol error; one that
+                // does not answer a read either is gone.
+                return Err(match c.camera.integer("Width") {
+                    Ok(_) => arv_error("TriggerSoftware", e),
+                    Err(probe) => disconnected(format!("TriggerSoftware: {e}; the camera does not answer: {probe}")),
+                });
+            }
             self.triggers += 1;
             triggered_at = Some(at);
         }
