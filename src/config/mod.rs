@@ -335,6 +335,12 @@ impl RigConfig {
                 }
                 crate::devices::hardware::validate_fbdev(p, &mut bad);
             }
+            Some(ProjectorConfig::Window(p)) => {
+                if let Some(cal) = &p.calibration {
+                    check_camera(&mut bad, "projector", p.width, p.height, cal);
+                }
+                crate::devices::hardware::validate_window(p, &mut bad);
+            }
             None => {}
         }
         match &self.depth_camera {

@@ -215,9 +215,6 @@ fn default_handshake_attempts() -> u32 {
 fn default_reconnect_max() -> u64 {
     5000
 }
-fn yes() -> bool {
-    true
-}
 fn default_emulator_speed() -> f64 {
     720.0
 }
@@ -536,6 +533,42 @@ pub enum ProjectorConfig {
     /// `kind = "fbdev"`: a projector on a video output driven as a Linux framebuffer, no desktop
     /// (cargo feature `fbdev`).
     Fbdev(FbdevProjectorConfig),
+    /// `kind = "window"`: a projector on an X11 output, driven as a borderless full-screen window
+    /// (cargo feature `x11`).
+    Window(WindowProjectorConfig),
+}
+
+/// `[projector] kind = "window"`: a borderless full-screen X11 window on one output.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WindowProjectorConfig {
+    /// The X display, e.g. `:0`; absent = `$DISPLAY`.
+    #[serde(default)]
+    pub display: Option<String>,
+    /// The output the projector is plugged into: a RandR output name (`HDMI-1`, `DP-2`; the error
+    /// for an unknown name lists them), or `screen:N` for the whole X screen N.
+    pub output: String,
+    /// Expected width, projector pixels (the output's must match).
+    pub width: u32,
+    /// Expected height, projector pixels.
+    pub height: u32,
+    /// Present each pattern at a vertical blank through the Present extension, and take its
+    /// presentation time from the server (true), or draw directly and allow one refresh (false).
+    #[serde(default = "yes")]
+    pub vsync: bool,
+    /// The projector's own delay from receiving a frame to showing it, milliseconds.
+    #[serde(default)]
+    pub latency_ms: u64,
+    /// Refresh rate to assume when the output reports no mode timing, hertz.
+    #[serde(default = "default_refresh_hz")]
+    pub refresh_hz: f64,
+    /// `[projector.calibration]`: intrinsics and pose in the rig frame, for triangulation.
+    #[serde(default)]
+    pub calibration: Option<CameraCalibration>,
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// `[projector] kind = "fbdev"`.
@@ -572,6 +605,7 @@ impl ProjectorConfig {
         match self {
             ProjectorConfig::Sim(p) => Some(p.calibration.model(p.width, p.height)),
             ProjectorConfig::Fbdev(p) => p.calibration.as_ref().map(|c| c.model(p.width, p.height)),
+            ProjectorConfig::Window(p) => p.calibration.as_ref().map(|c| c.model(p.width, p.height)),
         }
     }
 
@@ -580,6 +614,7 @@ impl ProjectorConfig {
         match self {
             ProjectorConfig::Sim(p) => (p.width, p.height),
             ProjectorConfig::Fbdev(p) => (p.width, p.height),
+            ProjectorConfig::Window(p) => (p.width, p.height),
         }
     }
 
@@ -588,6 +623,7 @@ impl ProjectorConfig {
         match self {
             ProjectorConfig::Sim(p) => p.frame_period_ms,
             ProjectorConfig::Fbdev(p) => 1000.0 / p.refresh_hz,
+            ProjectorConfig::Window(p) => 1000.0 / p.refresh_hz,
         }
     }
 }
@@ -643,6 +679,10 @@ pub struct FreenectDepthConfig {
     /// frame the calibration below then describes).
     #[serde(default)]
     pub registered: bool,
+    /// `mm` (the unit's calibrated millimetres) or `disparity` (raw 11-bit disparity converted by
+    /// the driver; what fakenect replays).
+    #[serde(default)]
+    pub depth_format: crate::devices::depth::kinect::FreenectDepthFormat,
     /// `[depth_camera.calibration]`: of the infrared camera (or the RGB camera when registered), at
     /// 640x480.
     pub calibration: CameraCalibration,

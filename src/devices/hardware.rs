@@ -3,7 +3,10 @@
 //! not built in is a validation problem naming the feature to enable, and an `InvalidConfig` error
 //! if it reaches the registry anyway.
 
-use crate::config::{CameraConfig, FbdevProjectorConfig, FreenectDepthConfig, GenicamCameraConfig, RealCameraConfig};
+use crate::config::{
+    CameraConfig, FbdevProjectorConfig, FreenectDepthConfig, GenicamCameraConfig, RealCameraConfig,
+    WindowProjectorConfig,
+};
 
 use super::sysfs::CameraSelector;
 use super::{Camera, DepthCamera, DeviceError, Projector};
@@ -125,6 +128,45 @@ pub fn validate_fbdev(p: &FbdevProjectorConfig, bad: &mut dyn FnMut(&str, String
     }
 }
 
+/// Checks of `[projector] kind = "window"`.
+pub fn validate_window(p: &WindowProjectorConfig, bad: &mut dyn FnMut(&str, String)) {
+    if !cfg!(feature = "x11") {
+        bad("projector.kind", missing_feature("window", "x11"));
+    }
+    if p.output.trim().is_empty() {
+        bad("projector.output", "must name an output (e.g. HDMI-1) or `screen:N`".into());
+    } else if let Some(n) = p.output.strip_prefix("screen:") {
+        if n.parse::<usize>().is_err() {
+            bad("projector.output", format!("`{}`: expected screen:N with N a screen number", p.output));
+        }
+    }
+    if p.display.as_deref().is_some_and(|d| d.trim().is_empty()) {
+        bad("projector.display", "must not be empty (leave it out to use $DISPLAY)".into());
+    }
+    if p.width == 0 || p.height == 0 || p.width > 16384 || p.height > 16384 {
+        bad("projector.width", format!("size {}x{} is not between 1 and 16384 pixels", p.width, p.height));
+    }
+    if p.latency_ms > 2000 {
+        bad("projector.latency_ms", "must be at most 2000".into());
+    }
+    if !(p.refresh_hz.is_finite() && (1.0..=1000.0).contains(&p.refresh_hz)) {
+        bad("projector.refresh_hz", format!("must be between 1 and 1000 Hz, got {}", p.refresh_hz));
+    }
+}
+
+/// Open a window projector.
+pub fn open_window(config: &WindowProjectorConfig) -> Result<Box<dyn Projector>, DeviceError> {
+    #[cfg(feature = "x11")]
+    {
+        Ok(Box::new(super::projector::window::WindowProjector::open(config)?))
+    }
+    #[cfg(not(feature = "x11"))]
+    {
+        let _ = config;
+        Err(not_built("projector", "window", "x11"))
+    }
+}
+
 /// Checks of `[depth_camera] kind = "freenect"`.
 pub fn validate_freenect(d: &FreenectDepthConfig, bad: &mut dyn FnMut(&str, String)) {
     if !cfg!(feature = "freenect") {
@@ -132,6 +174,12 @@ pub fn validate_freenect(d: &FreenectDepthConfig, bad: &mut dyn FnMut(&str, Stri
     }
     if d.serial.as_deref().is_some_and(|s| s.trim().is_empty() || s.contains('\0')) {
         bad("depth_camera.serial", "must be a non-empty serial number".into());
+    }
+    if d.registered && d.depth_format == super::depth::kinect::FreenectDepthFormat::Disparity {
+        bad(
+            "depth_camera.registered",
+            "registration needs depth_format = \"mm\" (raw disparity is unregistered)".into(),
+        );
     }
 }
 

@@ -84,6 +84,7 @@ pub fn build_rig(config: &RigConfig) -> Result<Rig, DeviceError> {
             Some(Box::new(super::projector::sim::SimProjector::new(need_sim("projector")?, p)))
         }
         Some(ProjectorConfig::Fbdev(p)) => Some(super::hardware::open_fbdev(p)?),
+        Some(ProjectorConfig::Window(p)) => Some(super::hardware::open_window(p)?),
     };
     let depth_camera: Option<Box<dyn DepthCamera>> = match &config.depth_camera {
         None => None,

@@ -90,7 +90,7 @@ impl SimWorld {
                 Some(ProjectorModel { model: p.calibration.model(p.width, p.height), intensity: p.intensity })
             }
             // A real projector lights the real world, not the simulated one.
-            ProjectorConfig::Fbdev(_) => None,
+            ProjectorConfig::Fbdev(_) | ProjectorConfig::Window(_) => None,
         });
         if !(sim.ambient.is_finite() && (0.0..=1.0).contains(&sim.ambient)) {
             return Err(SimError::InvalidAmbient { ambient: sim.ambient }.to_device_error("sim", "ambient"));
