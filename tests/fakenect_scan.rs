@@ -142,4 +142,6 @@ fn a_scan_under_fakenect_fuses_the_model_the_simulated_depth_camera_gives() {
         assert!(x > 0.8, "the simulated scan itself must be good: {key} {x}");
         assert!((x - y).abs() < 0.02, "{key}: simulated {x}, Kinect under fakenect {y}");
     }
+    let (x, y) = (figure(&a, "chamfer_m"), figure(&b, "chamfer_m"));
+    assert!((x - y).abs() < 1e-4, "Chamfer distance: simulated {x} m, Kinect under fakenect {y} m");
 }

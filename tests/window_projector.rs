@@ -105,7 +105,10 @@ fn every_gray_pattern_reads_back_from_the_second_screen_pixel_for_pixel() {
     let e = WindowProjector::open(&config(&display, "HDMI-9", 800, 600)).expect_err("no such output");
     assert_eq!(e.kind(), ErrorKind::InvalidConfig, "{e}");
     assert!(e.to_string().contains("outputs:"), "{e}");
-    println!("{e}");
+    // Xvfb names each screen's output `screen`: a name on two screens is refused, screen:N is not.
+    let e = WindowProjector::open(&config(&display, "screen", 800, 600)).expect_err("ambiguous name");
+    assert_eq!(e.kind(), ErrorKind::InvalidConfig, "{e}");
+    assert!(e.to_string().contains("is on 2 screens"), "{e}");
     // The wrong size for the output: refused.
     let e = WindowProjector::open(&config(&display, "screen:1", 640, 480)).expect_err("wrong size");
     assert_eq!(e.kind(), ErrorKind::InvalidConfig, "{e}");
