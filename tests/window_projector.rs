@@ -1,7 +1,7 @@
 //! The window projector against a real X server: Xvfb with two screens, the window full-screen on
 //! the second, every pattern of a Gray-code sequence read back from the server with `xwd` and
 //! compared pixel for pixel, the refresh period measured from the server's presentation times, and
-//! the server killed under it.
+//! the server killed under it, also in the middle of a structured-light scan through the real binary.
 //!
 //! The test starts Xvfb itself (Debian `xvfb`; `xwd` from `x11-apps`) on a display number Xvfb picks
 //! (`-displayfd`), listening on its Unix socket only.
@@ -18,7 +18,7 @@ use scanrig::devices::projector::window::WindowProjector;
 use scanrig::devices::{ErrorKind, Pattern, Projector};
 use scanrig::pipeline::structured_light::GrayCodePatterns;
 
-/// Xvfb with screen 0 at 640x480 and screen 1 at 800x600, killed on drop.
+/// Xvfb (by default screen 0 at 640x480 and screen 1 at 800x600), killed on drop.
 struct Xvfb {
     child: Option<Child>,
     display: String,
@@ -26,9 +26,13 @@ struct Xvfb {
 
 impl Xvfb {
     fn start() -> Self {
+        Self::start_with(&["-screen", "0", "640x480x24", "-screen", "1", "800x600x24"])
+    }
+
+    fn start_with(screens: &[&str]) -> Self {
         let mut child = Command::new("Xvfb")
             .args(["-displayfd", "1", "-nolisten", "tcp", "-noreset"])
-            .args(["-screen", "0", "640x480x24", "-screen", "1", "800x600x24"])
+            .args(screens)
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
             .spawn()
@@ -186,4 +190,56 @@ fn without_vsync_the_pattern_is_drawn_directly_and_still_reads_back() {
         assert!(at >= before + Duration::from_millis(20), "one assumed refresh (20 ms at 50 Hz) is allowed");
         assert!(xwd_rgb(&x.display, 0).2 == *pattern.rgb, "pattern {i} reads back");
     }
+}
+
+#[test]
+fn killing_the_x_server_mid_scan_fails_the_scan_typed_and_keeps_the_frames() {
+    let mut x = Xvfb::start_with(&["-screen", "0", "640x480x24", "-screen", "1", "512x384x24"]);
+    let shipped = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/structured-light.toml");
+    let text = std::fs::read_to_string(&shipped).expect("structured-light rig");
+    let sim_projector = "[projector]\nkind = \"sim\"\nwidth = 512\nheight = 384\nintensity = 1.0\nlatency_ms = 30.0\nframe_period_ms = 16.667\n";
+    assert!(text.contains(sim_projector), "the shipped rig changed; update this test");
+    let window = format!(
+        "[projector]\nkind = \"window\"\ndisplay = \"{}\"\noutput = \"screen:1\"\nwidth = 512\nheight = 384\n",
+        x.display
+    );
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rig = dir.path().join("window.toml");
+    std::fs::write(&rig, text.replace(sim_projector, &window).replace("resolution = 128", "resolution = 32"))
+        .expect("write rig");
+    let out = dir.path().join("out");
+    let mut scan = Command::new(env!("CARGO_BIN_EXE_scanrig"))
+        .args(["scan", "--rig"])
+        .arg(&rig)
+        .arg("--out")
+        .arg(&out)
+        .env("NO_COLOR", "1")
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start scanrig");
+    // Two whole views (their patterns shown on the window, one frame each captured) on disk, then
+    // the X server goes.
+    let second = out.join("frames/pos_001_white.png");
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while !second.exists() {
+        assert!(Instant::now() < deadline, "no second view");
+        assert!(scan.try_wait().expect("wait").is_none(), "scan ended before the X server was killed");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    x.kill();
+    let run = scan.wait_with_output().expect("scan ends");
+    let log = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success(), "the scan must fail:\n{log}");
+    assert!(log.contains("projector: disconnected"), "a typed disconnect:\n{log}");
+    assert!(!log.contains("panicked"), "{log}");
+    assert!(!out.join("report.json").exists(), "no report for a failed scan");
+    let mut views = 0;
+    while out.join(format!("frames/pos_{views:03}_white.png")).exists() {
+        for kind in ["white", "columns"] {
+            let img = image::open(out.join(format!("frames/pos_{views:03}_{kind}.png"))).expect("kept frame decodes");
+            assert_eq!(img.width(), 400);
+        }
+        views += 1;
+    }
+    assert!((2..16).contains(&views), "{views} views kept");
 }

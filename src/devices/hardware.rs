@@ -103,7 +103,7 @@ pub fn validate_genicam(c: &GenicamCameraConfig, bad: &mut dyn FnMut(&str, Strin
         }
     }
     if c.trigger == TriggerMode::Line
-        && !(!c.trigger_line.is_empty() && c.trigger_line.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_'))
+        && (c.trigger_line.is_empty() || !c.trigger_line.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_'))
     {
         bad("camera.trigger_line", format!("`{}`: expected a GenICam line name such as Line0", c.trigger_line));
     }
