@@ -195,3 +195,90 @@ fn opening_an_absent_device_is_a_typed_error_naming_what_is_missing() {
         expect(hardware::open_freenect(d).map(drop), false, "freenect");
     }
 }
+
+/// The real-hardware fixture with its camera and projector swapped for a GenICam camera and a window
+/// projector (`camera` and `projector` TOML sections given whole).
+fn with_genicam_and_window(camera: &str, projector: &str) -> String {
+    let text = std::fs::read_to_string(fixture()).expect("fixture");
+    let mut out = String::new();
+    let mut skip = false;
+    for line in text.lines() {
+        if line.starts_with('[') {
+            let section = line.trim_matches(|c| c == '[' || c == ']');
+            skip = section == "camera"
+                || section == "projector"
+                || section.starts_with("camera.controls")
+                || section.starts_with("projector.");
+            if section == "camera" {
+                out.push_str(camera);
+                out.push('\n');
+            }
+            if section == "projector" {
+                out.push_str(projector);
+                out.push('\n');
+            }
+        }
+        if !skip {
+            out.push_str(line);
+            out.push('\n');
+        }
+    }
+    out
+}
+
+#[test]
+fn genicam_and_window_settings_are_checked_at_their_lines() {
+    let camera = "[camera]\nkind = \"genicam\"\nvendor = \"Basler\"\nwidth = 1280\nheight = 720\nexposure_us = -5.0\n\
+                  fps = 0.0\nbuffers = 1\ntrigger = \"software\"\ntrigger_delay_us = 10.0\n";
+    let projector =
+        "[projector]\nkind = \"window\"\noutput = \"screen:x\"\nwidth = 1280\nheight = 800\nrefresh_hz = 0.5\n";
+    let text = with_genicam_and_window(camera, projector);
+    let Err(scanrig::config::ConfigError::Invalid { problems, .. }) =
+        scanrig::config::parse(&text, Path::new("rig.toml"))
+    else {
+        panic!("invalid rig accepted:\n{text}")
+    };
+    let find = |key: &str| problems.iter().find(|p| p.key == key).unwrap_or_else(|| panic!("no {key}: {problems:?}"));
+    assert!(find("camera.serial").message.contains("serial number"), "no stable identity");
+    assert!(find("camera.exposure_us").line.is_some());
+    assert!(find("camera.fps").message.contains("frames per second"));
+    assert!(find("camera.buffers").message.contains("between 2 and 64"));
+    assert!(find("camera.trigger_delay_us").message.contains("line"));
+    assert!(find("projector.output").message.contains("screen:N"));
+    assert!(find("projector.refresh_hz").line.is_some());
+    let line = text.lines().position(|l| l == "output = \"screen:x\"").expect("line") + 1;
+    assert_eq!(find("projector.output").line, Some(line));
+    assert_eq!(
+        problems.iter().any(|p| p.key == "camera.kind"),
+        !cfg!(feature = "aravis"),
+        "the aravis feature is named only when it is not built in: {problems:?}"
+    );
+    assert_eq!(problems.iter().any(|p| p.key == "projector.kind"), !cfg!(feature = "x11"), "{problems:?}");
+
+    // A good GenICam camera and window projector validate (given their features).
+    let camera = "[camera]\nkind = \"genicam\"\nserial = \"22317405\"\nwidth = 1280\nheight = 720\n\
+                  trigger = \"line\"\ntrigger_line = \"Line1\"\ntrigger_activation = \"falling-edge\"\ntrigger_delay_us = 10.0\n";
+    let projector = "[projector]\nkind = \"window\"\noutput = \"HDMI-1\"\nwidth = 1280\nheight = 800\n";
+    let text = with_genicam_and_window(camera, projector);
+    match scanrig::config::parse(&text, Path::new("rig.toml")) {
+        Ok(rig) => assert!(matches!(rig.camera, scanrig::config::CameraConfig::Genicam(_))),
+        Err(scanrig::config::ConfigError::Invalid { problems, .. }) => {
+            let keys: Vec<&str> = problems.iter().map(|p| p.key.as_str()).collect();
+            let mut want = Vec::new();
+            if !cfg!(feature = "aravis") {
+                want.push("camera.kind");
+            }
+            if !cfg!(feature = "x11") {
+                want.push("projector.kind");
+            }
+            if !cfg!(feature = "freenect") {
+                want.push("depth_camera.kind");
+            }
+            want.sort_unstable();
+            let mut keys = keys;
+            keys.sort_unstable();
+            assert_eq!(keys, want, "{problems:?}");
+        }
+        Err(e) => panic!("{e}"),
+    }
+}

@@ -313,6 +313,10 @@ impl RigConfig {
                 check_camera(&mut bad, "camera", c.width, c.height, &c.calibration);
                 crate::devices::hardware::validate_camera(&self.camera, c, &mut bad);
             }
+            CameraConfig::Genicam(c) => {
+                check_camera(&mut bad, "camera", c.width, c.height, &c.calibration);
+                crate::devices::hardware::validate_genicam(c, &mut bad);
+            }
         }
         match &self.projector {
             Some(ProjectorConfig::Sim(p)) => {
@@ -330,6 +334,12 @@ impl RigConfig {
                     check_camera(&mut bad, "projector", p.width, p.height, cal);
                 }
                 crate::devices::hardware::validate_fbdev(p, &mut bad);
+            }
+            Some(ProjectorConfig::Window(p)) => {
+                if let Some(cal) = &p.calibration {
+                    check_camera(&mut bad, "projector", p.width, p.height, cal);
+                }
+                crate::devices::hardware::validate_window(p, &mut bad);
             }
             None => {}
         }

@@ -215,9 +215,6 @@ fn default_handshake_attempts() -> u32 {
 fn default_reconnect_max() -> u64 {
     5000
 }
-fn yes() -> bool {
-    true
-}
 fn default_emulator_speed() -> f64 {
     720.0
 }
@@ -317,6 +314,8 @@ pub enum CameraConfig {
     V4l2(RealCameraConfig),
     /// `kind = "uvc"`: a UVC camera through nokhwa (cargo feature `nokhwa`), for platforms without V4L2.
     Uvc(RealCameraConfig),
+    /// `kind = "genicam"`: a GigE Vision or USB3 Vision camera through Aravis (cargo feature `aravis`).
+    Genicam(GenicamCameraConfig),
 }
 
 impl CameraConfig {
@@ -325,6 +324,7 @@ impl CameraConfig {
         match self {
             CameraConfig::Sim(c) => c.calibration.model(c.width, c.height),
             CameraConfig::V4l2(c) | CameraConfig::Uvc(c) => c.calibration.model(c.width, c.height),
+            CameraConfig::Genicam(c) => c.calibration.model(c.width, c.height),
         }
     }
 
@@ -333,6 +333,7 @@ impl CameraConfig {
         match self {
             CameraConfig::Sim(c) => (c.width, c.height),
             CameraConfig::V4l2(c) | CameraConfig::Uvc(c) => (c.width, c.height),
+            CameraConfig::Genicam(c) => (c.width, c.height),
         }
     }
 
@@ -341,6 +342,7 @@ impl CameraConfig {
         match self {
             CameraConfig::Sim(c) => &mut c.calibration,
             CameraConfig::V4l2(c) | CameraConfig::Uvc(c) => &mut c.calibration,
+            CameraConfig::Genicam(c) => &mut c.calibration,
         }
     }
 }
@@ -376,6 +378,65 @@ pub struct RealCameraConfig {
 
 fn default_real_buffers() -> u32 {
     4
+}
+
+/// `[camera] kind = "genicam"`: a GigE Vision / USB3 Vision camera through Aravis. It is selected
+/// by its stable identity (`serial`, with `vendor` and `model` to narrow it), or reached at `address`
+/// without discovery; every value below is written as a GenICam feature and read back.
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct GenicamCameraConfig {
+    /// `DeviceVendorName` to match (e.g. `Basler`); absent = any.
+    #[serde(default)]
+    pub vendor: Option<String>,
+    /// `DeviceModelName` to match; absent = any.
+    #[serde(default)]
+    pub model: Option<String>,
+    /// `DeviceSerialNumber` to match, the stable identity (`scanrig devices` lists it).
+    #[serde(default)]
+    pub serial: Option<String>,
+    /// Open the GigE Vision camera at this IP address directly, without broadcast discovery; the
+    /// vendor, model and serial above are then checked against what it reports.
+    #[serde(default)]
+    pub address: Option<String>,
+    /// Image width, pixels (the region of interest starts at the sensor's top-left corner).
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// `PixelFormat`: `Mono8` or `RGB8`.
+    #[serde(default)]
+    pub pixel_format: crate::devices::camera::genicam_features::GenicamPixelFormat,
+    /// Exposure time, microseconds; absent = the camera's current value.
+    #[serde(default)]
+    pub exposure_us: Option<f64>,
+    /// Gain (`Gain` in dB, or `GainRaw` on cameras that only have it); absent = the camera's.
+    #[serde(default)]
+    pub gain: Option<f64>,
+    /// Frame rate, frames per second (in free run, the rate; with a trigger, the upper bound);
+    /// absent = the camera's.
+    #[serde(default)]
+    pub fps: Option<f64>,
+    /// How exposures start: `free-run`, `software` or `line`.
+    #[serde(default)]
+    pub trigger: crate::devices::camera::genicam_features::TriggerMode,
+    /// With `trigger = "line"`: the input line (`TriggerSource`), e.g. `Line0`.
+    #[serde(default = "default_trigger_line")]
+    pub trigger_line: String,
+    /// With `trigger = "line"`: the edge or level that starts an exposure.
+    #[serde(default)]
+    pub trigger_activation: crate::devices::camera::genicam_features::TriggerActivation,
+    /// With `trigger = "line"`: delay from the trigger to the start of exposure, microseconds.
+    #[serde(default)]
+    pub trigger_delay_us: Option<f64>,
+    /// Stream buffers in the pool; after a scene change up to this many queued frames are stale.
+    #[serde(default = "default_real_buffers")]
+    pub buffers: u32,
+    /// `[camera.calibration]`.
+    pub calibration: CameraCalibration,
+}
+
+fn default_trigger_line() -> String {
+    "Line0".into()
 }
 
 /// `[camera] kind = "sim"`.
@@ -472,6 +533,42 @@ pub enum ProjectorConfig {
     /// `kind = "fbdev"`: a projector on a video output driven as a Linux framebuffer, no desktop
     /// (cargo feature `fbdev`).
     Fbdev(FbdevProjectorConfig),
+    /// `kind = "window"`: a projector on an X11 output, driven as a borderless full-screen window
+    /// (cargo feature `x11`).
+    Window(WindowProjectorConfig),
+}
+
+/// `[projector] kind = "window"`: a borderless full-screen X11 window on one output.
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct WindowProjectorConfig {
+    /// The X display, e.g. `:0`; absent = `$DISPLAY`.
+    #[serde(default)]
+    pub display: Option<String>,
+    /// The output the projector is plugged into: a RandR output name (`HDMI-1`, `DP-2`; the error
+    /// for an unknown name lists them), or `screen:N` for the whole X screen N.
+    pub output: String,
+    /// Expected width, projector pixels (the output's must match).
+    pub width: u32,
+    /// Expected height, projector pixels.
+    pub height: u32,
+    /// Present each pattern at a vertical blank through the Present extension, and take its
+    /// presentation time from the server (true), or draw directly and allow one refresh (false).
+    #[serde(default = "yes")]
+    pub vsync: bool,
+    /// The projector's own delay from receiving a frame to showing it, milliseconds.
+    #[serde(default)]
+    pub latency_ms: u64,
+    /// Refresh rate to assume when the output reports no mode timing, hertz.
+    #[serde(default = "default_refresh_hz")]
+    pub refresh_hz: f64,
+    /// `[projector.calibration]`: intrinsics and pose in the rig frame, for triangulation.
+    #[serde(default)]
+    pub calibration: Option<CameraCalibration>,
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// `[projector] kind = "fbdev"`.
@@ -508,6 +605,7 @@ impl ProjectorConfig {
         match self {
             ProjectorConfig::Sim(p) => Some(p.calibration.model(p.width, p.height)),
             ProjectorConfig::Fbdev(p) => p.calibration.as_ref().map(|c| c.model(p.width, p.height)),
+            ProjectorConfig::Window(p) => p.calibration.as_ref().map(|c| c.model(p.width, p.height)),
         }
     }
 
@@ -516,6 +614,7 @@ impl ProjectorConfig {
         match self {
             ProjectorConfig::Sim(p) => (p.width, p.height),
             ProjectorConfig::Fbdev(p) => (p.width, p.height),
+            ProjectorConfig::Window(p) => (p.width, p.height),
         }
     }
 
@@ -524,6 +623,7 @@ impl ProjectorConfig {
         match self {
             ProjectorConfig::Sim(p) => p.frame_period_ms,
             ProjectorConfig::Fbdev(p) => 1000.0 / p.refresh_hz,
+            ProjectorConfig::Window(p) => 1000.0 / p.refresh_hz,
         }
     }
 }
@@ -579,6 +679,10 @@ pub struct FreenectDepthConfig {
     /// frame the calibration below then describes).
     #[serde(default)]
     pub registered: bool,
+    /// `mm` (the unit's calibrated millimetres) or `disparity` (raw 11-bit disparity converted by
+    /// the driver; what fakenect replays).
+    #[serde(default)]
+    pub depth_format: crate::devices::depth::kinect::FreenectDepthFormat,
     /// `[depth_camera.calibration]`: of the infrared camera (or the RGB camera when registered), at
     /// 640x480.
     pub calibration: CameraCalibration,

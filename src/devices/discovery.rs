@@ -26,6 +26,21 @@ pub struct DepthEntry {
     pub serial: String,
 }
 
+/// One GenICam camera (GigE Vision or USB3 Vision) found by Aravis discovery.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct GenicamEntry {
+    /// `DeviceVendorName`.
+    pub vendor: String,
+    /// `DeviceModelName`.
+    pub model: String,
+    /// `DeviceSerialNumber`, the stable identity.
+    pub serial: String,
+    /// `GigEVision` or `USB3Vision`.
+    pub protocol: String,
+    /// IP address or USB path.
+    pub address: String,
+}
+
 /// Everything `scanrig devices` found.
 #[derive(Debug, Clone, Default)]
 pub struct Listing {
@@ -37,6 +52,8 @@ pub struct Listing {
     pub framebuffers: Vec<FramebufferNode>,
     /// Depth cameras (needs the driver's feature).
     pub depth_cameras: Vec<DepthEntry>,
+    /// GenICam cameras (needs the `aravis` feature).
+    pub genicam_cameras: Vec<GenicamEntry>,
     /// Lines about what could not be probed (a feature not built in, a library error).
     pub notes: Vec<String>,
 }
@@ -51,7 +68,31 @@ pub fn discover(root: &SysRoot) -> Listing {
         listing.cameras.push(CameraEntry { node, formats, formats_note });
     }
     probe_depth(root, &mut listing);
+    probe_genicam(root, &mut listing);
     listing
+}
+
+/// GenICam cameras through Aravis discovery (GigE Vision discovery broadcasts on every network
+/// interface; USB3 Vision enumerates USB), on the real system only.
+#[cfg(feature = "aravis")]
+fn probe_genicam(root: &SysRoot, listing: &mut Listing) {
+    if !root.is_system() {
+        return;
+    }
+    listing.genicam_cameras.extend(super::camera::arv::list_devices().into_iter().map(|d| GenicamEntry {
+        vendor: d.vendor,
+        model: d.model,
+        serial: d.serial,
+        protocol: d.protocol,
+        address: d.address,
+    }));
+}
+
+#[cfg(not(feature = "aravis"))]
+fn probe_genicam(_root: &SysRoot, listing: &mut Listing) {
+    listing
+        .notes
+        .push("GenICam cameras: build with `--features aravis` to list GigE Vision / USB3 Vision cameras".into());
 }
 
 #[cfg(feature = "v4l")]
@@ -141,6 +182,25 @@ pub fn render(listing: &Listing) -> String {
             toml_string(&n.best_selector())
         );
     }
+    let _ = writeln!(out, "GenICam cameras ({}):", listing.genicam_cameras.len());
+    for g in &listing.genicam_cameras {
+        let _ = writeln!(
+            out,
+            "  {} {}  serial {}  {} {}",
+            toml_string(&g.vendor),
+            toml_string(&g.model),
+            toml_string(&g.serial),
+            g.protocol,
+            g.address
+        );
+        let _ = writeln!(
+            out,
+            "    # rig file:\n    [camera]\n    kind = \"genicam\"\n    vendor = {}\n    model = {}\n    serial = {}",
+            toml_string(&g.vendor),
+            toml_string(&g.model),
+            toml_string(&g.serial)
+        );
+    }
     let _ = writeln!(out, "Serial ports ({}):", listing.serial_ports.len());
     for p in &listing.serial_ports {
         let _ = writeln!(out, "  {}", p.node.display());
@@ -209,12 +269,26 @@ mod tests {
         fake::usb_camera(r, "1-2", 2, "USB \"Cam\"", ("0c45", "6366"), None);
         fake::usb_serial(r, "1-4", 0, ("2e8a", "000a"), "SCANRIG-CTRL-01", "Scanrig Controller");
         fake::framebuffer(r, 1, "projector", (1280, 800), 32);
-        let listing = discover(&SysRoot::new(r));
+        let mut listing = discover(&SysRoot::new(r));
+        assert!(listing.genicam_cameras.is_empty(), "no network discovery for a fake tree");
+        listing.genicam_cameras.push(GenicamEntry {
+            vendor: "Basler".into(),
+            model: "acA1920-40gm".into(),
+            serial: "2231\"7".into(),
+            protocol: "GigEVision".into(),
+            address: "192.168.1.20".into(),
+        });
         assert_eq!(listing.cameras.len(), 2, "metadata nodes are not cameras");
         let text = render(&listing);
         assert!(text.contains("device = \"/dev/v4l/by-id/usb-HD_Pro_Webcam_C920_ABC123-video-index0\""), "{text}");
         assert!(text.contains("device = \"bus:usb-0000:00:14.0-2\""), "{text}");
         assert!(text.contains("\"USB \\\"Cam\\\"\""), "quotes escaped: {text}");
+        assert!(
+            text.contains(
+                "kind = \"genicam\"\n    vendor = \"Basler\"\n    model = \"acA1920-40gm\"\n    serial = \"2231\\\"7\""
+            ),
+            "{text}"
+        );
         assert!(text.contains("port = \"/dev/serial/by-id/usb-Scanrig_Controller_SCANRIG-CTRL-01-if00\""), "{text}");
         assert!(text.contains("# or: port = \"usb:2e8a:000a:SCANRIG-CTRL-01\""), "{text}");
         assert!(

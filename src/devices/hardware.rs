@@ -3,7 +3,10 @@
 //! not built in is a validation problem naming the feature to enable, and an `InvalidConfig` error
 //! if it reaches the registry anyway.
 
-use crate::config::{CameraConfig, FbdevProjectorConfig, FreenectDepthConfig, RealCameraConfig};
+use crate::config::{
+    CameraConfig, FbdevProjectorConfig, FreenectDepthConfig, GenicamCameraConfig, RealCameraConfig,
+    WindowProjectorConfig,
+};
 
 use super::sysfs::CameraSelector;
 use super::{Camera, DepthCamera, DeviceError, Projector};
@@ -14,6 +17,7 @@ pub fn camera_feature(config: &CameraConfig) -> Option<(&'static str, &'static s
         CameraConfig::Sim(_) => None,
         CameraConfig::V4l2(_) => Some(("v4l2", "v4l", cfg!(feature = "v4l"))),
         CameraConfig::Uvc(_) => Some(("uvc", "nokhwa", cfg!(feature = "nokhwa"))),
+        CameraConfig::Genicam(_) => Some(("genicam", "aravis", cfg!(feature = "aravis"))),
     }
 }
 
@@ -54,6 +58,57 @@ pub fn validate_camera(config: &CameraConfig, c: &RealCameraConfig, bad: &mut dy
     }
 }
 
+/// Checks of `[camera] kind = "genicam"` (`camera.*` keys).
+pub fn validate_genicam(c: &GenicamCameraConfig, bad: &mut dyn FnMut(&str, String)) {
+    use super::camera::genicam_features::TriggerMode;
+    if !cfg!(feature = "aravis") {
+        bad("camera.kind", missing_feature("genicam", "aravis"));
+    }
+    let blank = |v: &Option<String>| v.as_deref().is_some_and(|s| s.trim().is_empty() || s.contains('\0'));
+    for (key, v) in [("vendor", &c.vendor), ("model", &c.model), ("serial", &c.serial), ("address", &c.address)] {
+        if blank(v) {
+            bad(&format!("camera.{key}"), "must not be empty".into());
+        }
+    }
+    if c.serial.is_none() && c.address.is_none() {
+        bad(
+            "camera.serial",
+            "a GenICam camera is selected by its serial number (or reached at `address`); `scanrig devices` lists them"
+                .into(),
+        );
+    }
+    if let Some(a) = &c.address {
+        if a.parse::<std::net::Ipv4Addr>().is_err() {
+            bad("camera.address", format!("`{a}` is not an IPv4 address"));
+        }
+    }
+    if !(2..=64).contains(&c.buffers) {
+        bad("camera.buffers", format!("must be between 2 and 64, got {}", c.buffers));
+    }
+    if c.exposure_us.is_some_and(|e| !(e.is_finite() && e > 0.0 && e <= 10_000_000.0)) {
+        bad("camera.exposure_us", "must be between 0 and 10000000 microseconds".into());
+    }
+    if c.gain.is_some_and(|g| !(g.is_finite() && g >= 0.0)) {
+        bad("camera.gain", "must be a non-negative number".into());
+    }
+    if c.fps.is_some_and(|f| !(f.is_finite() && f > 0.0 && f <= 10_000.0)) {
+        bad("camera.fps", "must be between 0 and 10000 frames per second".into());
+    }
+    if let Some(d) = c.trigger_delay_us {
+        if !(d.is_finite() && (0.0..=10_000_000.0).contains(&d)) {
+            bad("camera.trigger_delay_us", "must be between 0 and 10000000 microseconds".into());
+        }
+        if c.trigger != TriggerMode::Line {
+            bad("camera.trigger_delay_us", "applies to trigger = \"line\" only".into());
+        }
+    }
+    if c.trigger == TriggerMode::Line
+        && (c.trigger_line.is_empty() || !c.trigger_line.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_'))
+    {
+        bad("camera.trigger_line", format!("`{}`: expected a GenICam line name such as Line0", c.trigger_line));
+    }
+}
+
 /// Checks of `[projector] kind = "fbdev"`.
 pub fn validate_fbdev(p: &FbdevProjectorConfig, bad: &mut dyn FnMut(&str, String)) {
     if !cfg!(feature = "fbdev") {
@@ -73,6 +128,45 @@ pub fn validate_fbdev(p: &FbdevProjectorConfig, bad: &mut dyn FnMut(&str, String
     }
 }
 
+/// Checks of `[projector] kind = "window"`.
+pub fn validate_window(p: &WindowProjectorConfig, bad: &mut dyn FnMut(&str, String)) {
+    if !cfg!(feature = "x11") {
+        bad("projector.kind", missing_feature("window", "x11"));
+    }
+    if p.output.trim().is_empty() {
+        bad("projector.output", "must name an output (e.g. HDMI-1) or `screen:N`".into());
+    } else if let Some(n) = p.output.strip_prefix("screen:") {
+        if n.parse::<usize>().is_err() {
+            bad("projector.output", format!("`{}`: expected screen:N with N a screen number", p.output));
+        }
+    }
+    if p.display.as_deref().is_some_and(|d| d.trim().is_empty()) {
+        bad("projector.display", "must not be empty (leave it out to use $DISPLAY)".into());
+    }
+    if p.width == 0 || p.height == 0 || p.width > 16384 || p.height > 16384 {
+        bad("projector.width", format!("size {}x{} is not between 1 and 16384 pixels", p.width, p.height));
+    }
+    if p.latency_ms > 2000 {
+        bad("projector.latency_ms", "must be at most 2000".into());
+    }
+    if !(p.refresh_hz.is_finite() && (1.0..=1000.0).contains(&p.refresh_hz)) {
+        bad("projector.refresh_hz", format!("must be between 1 and 1000 Hz, got {}", p.refresh_hz));
+    }
+}
+
+/// Open a window projector.
+pub fn open_window(config: &WindowProjectorConfig) -> Result<Box<dyn Projector>, DeviceError> {
+    #[cfg(feature = "x11")]
+    {
+        Ok(Box::new(super::projector::window::WindowProjector::open(config)?))
+    }
+    #[cfg(not(feature = "x11"))]
+    {
+        let _ = config;
+        Err(not_built("projector", "window", "x11"))
+    }
+}
+
 /// Checks of `[depth_camera] kind = "freenect"`.
 pub fn validate_freenect(d: &FreenectDepthConfig, bad: &mut dyn FnMut(&str, String)) {
     if !cfg!(feature = "freenect") {
@@ -81,9 +175,25 @@ pub fn validate_freenect(d: &FreenectDepthConfig, bad: &mut dyn FnMut(&str, Stri
     if d.serial.as_deref().is_some_and(|s| s.trim().is_empty() || s.contains('\0')) {
         bad("depth_camera.serial", "must be a non-empty serial number".into());
     }
+    if d.registered && d.depth_format == super::depth::kinect::FreenectDepthFormat::Disparity {
+        bad(
+            "depth_camera.registered",
+            "registration needs depth_format = \"mm\" (raw disparity is unregistered)".into(),
+        );
+    }
 }
 
-#[cfg_attr(all(feature = "v4l", feature = "nokhwa", feature = "fbdev", feature = "freenect"), allow(dead_code))]
+#[cfg_attr(
+    all(
+        feature = "v4l",
+        feature = "nokhwa",
+        feature = "fbdev",
+        feature = "freenect",
+        feature = "aravis",
+        feature = "x11"
+    ),
+    allow(dead_code)
+)]
 fn not_built(device: &str, kind: &str, feature: &str) -> DeviceError {
     DeviceError::InvalidConfig { device: device.to_owned(), field: "kind", problem: missing_feature(kind, feature) }
 }
@@ -108,6 +218,10 @@ pub fn open_camera(config: &CameraConfig) -> Result<Box<dyn Camera>, DeviceError
         }
         #[cfg(not(feature = "nokhwa"))]
         CameraConfig::Uvc(_) => Err(not_built("camera", "uvc", "nokhwa")),
+        #[cfg(feature = "aravis")]
+        CameraConfig::Genicam(c) => Ok(Box::new(super::camera::genicam::GenicamCamera::open(c)?)),
+        #[cfg(not(feature = "aravis"))]
+        CameraConfig::Genicam(_) => Err(not_built("camera", "genicam", "aravis")),
     }
 }
 

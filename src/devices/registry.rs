@@ -74,7 +74,9 @@ pub fn build_rig(config: &RigConfig) -> Result<Rig, DeviceError> {
     };
     let camera: Box<dyn Camera> = match &config.camera {
         CameraConfig::Sim(c) => Box::new(super::camera::sim::SimCamera::new(need_sim("camera")?, c)),
-        real @ (CameraConfig::V4l2(_) | CameraConfig::Uvc(_)) => super::hardware::open_camera(real)?,
+        real @ (CameraConfig::V4l2(_) | CameraConfig::Uvc(_) | CameraConfig::Genicam(_)) => {
+            super::hardware::open_camera(real)?
+        }
     };
     let projector: Option<Box<dyn Projector>> = match &config.projector {
         None => None,
@@ -82,6 +84,7 @@ pub fn build_rig(config: &RigConfig) -> Result<Rig, DeviceError> {
             Some(Box::new(super::projector::sim::SimProjector::new(need_sim("projector")?, p)))
         }
         Some(ProjectorConfig::Fbdev(p)) => Some(super::hardware::open_fbdev(p)?),
+        Some(ProjectorConfig::Window(p)) => Some(super::hardware::open_window(p)?),
     };
     let depth_camera: Option<Box<dyn DepthCamera>> = match &config.depth_camera {
         None => None,

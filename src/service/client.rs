@@ -201,7 +201,7 @@ pub fn fetch_results(client: &Client, id: &str, out: &std::path::Path) -> Result
     for name in ["report.json", "meta.json", "model.ply", "model.stl", "model.obj", "voxels.ply"] {
         let r = client.request("GET", &format!("/api/v1/scans/{id}/files/{name}"), None).map_err(FetchError::Client)?;
         let path = out.join(name);
-        crate::atomic::write_atomic(&path, &r.body).map_err(FetchError::Write)?;
+        crate::atomic::write_atomic(&path, &r.body).map_err(FetchError::WriteFile)?;
         written.push(name);
     }
     Ok(written)
@@ -224,7 +224,7 @@ pub enum FetchError {
     },
     /// A file cannot be written.
     #[error("cannot write a result file")]
-    Write(#[source] crate::atomic::AtomicWriteError),
+    WriteFile(#[source] crate::atomic::AtomicWriteError),
 }
 
 enum HeadError {

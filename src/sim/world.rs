@@ -95,7 +95,7 @@ impl SimWorld {
                 Some(ProjectorModel { model: p.calibration.model(p.width, p.height), intensity: p.intensity })
             }
             // A real projector lights the real world, not the simulated one.
-            ProjectorConfig::Fbdev(_) => None,
+            ProjectorConfig::Fbdev(_) | ProjectorConfig::Window(_) => None,
         });
         if !(sim.ambient.is_finite() && (0.0..=1.0).contains(&sim.ambient)) {
             return Err(SimConfigError {
@@ -226,7 +226,3 @@ impl SimWorld {
         self.inner.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
-
-/// The simulated world is the hardware behind an emulated serial board: a scan through the real
-/// serial code path (`port = "emulator:..."`) turns and lights the same simulated scene. A light or
-/// laser index the scene does not have is a pin with nothing connected: ignored, logged at debug.

@@ -1,6 +1,11 @@
 //! Cameras: a stream of frames with metadata.
 
+#[cfg(feature = "aravis")]
+pub mod arv;
 pub mod controls;
+#[cfg(feature = "aravis")]
+pub mod genicam;
+pub mod genicam_features;
 pub mod pixel;
 pub mod sim;
 pub mod stream;

@@ -4,7 +4,9 @@
 //! blocking `sync` wrapper.
 //!
 //! Depth comes in millimetres (`FREENECT_DEPTH_MM`, or `FREENECT_DEPTH_REGISTERED` aligned to the RGB
-//! camera), 640x480, 0 where nothing was measured, and is handed on in metres.
+//! camera), 640x480, 0 where nothing was measured, and is handed on in metres. With
+//! `depth_format = "disparity"` the driver takes the raw 11-bit disparity (`FREENECT_DEPTH_11BIT`)
+//! and converts it itself ([`kinect`](super::kinect)); that is the only format fakenect replays.
 
 use std::ffi::{c_char, c_int, c_void, CStr, CString};
 use std::time::{Duration, Instant};
@@ -54,6 +56,7 @@ struct FrameMode {
 
 const FREENECT_DEVICE_CAMERA: c_int = 0x02;
 const FREENECT_RESOLUTION_MEDIUM: c_int = 1;
+const FREENECT_DEPTH_11BIT: c_int = 0;
 const FREENECT_DEPTH_REGISTERED: c_int = 4;
 const FREENECT_DEPTH_MM: c_int = 5;
 
@@ -64,8 +67,6 @@ extern "C" {
     fn freenect_init(ctx: *mut *mut FreenectContext, usb_ctx: *mut c_void) -> c_int;
     fn freenect_shutdown(ctx: *mut FreenectContext) -> c_int;
     fn freenect_select_subdevices(ctx: *mut FreenectContext, subdevs: c_int);
-    fn freenect_list_device_attributes(ctx: *mut FreenectContext, list: *mut *mut DeviceAttributes) -> c_int;
-    fn freenect_free_device_attributes(list: *mut DeviceAttributes);
     fn freenect_open_device(ctx: *mut FreenectContext, dev: *mut *mut FreenectDevice, index: c_int) -> c_int;
     fn freenect_open_device_by_camera_serial(
         ctx: *mut FreenectContext,
@@ -87,7 +88,7 @@ extern "C" {
 /// `freenect_process_events_timeout`.
 #[derive(Debug, Default)]
 struct Latest {
-    /// Depth, millimetres.
+    /// Depth, millimetres (or raw disparity in disparity mode).
     depth_mm: Vec<u16>,
     received: Option<Instant>,
     /// Frames delivered by the library, including ones replaced before being taken.
@@ -102,8 +103,8 @@ extern "C" fn on_depth(dev: *mut FreenectDevice, depth: *mut c_void, _timestamp:
     if depth.is_null() {
         return;
     }
-    // SAFETY: in FREENECT_DEPTH_MM / REGISTERED mode at medium resolution the library hands a buffer
-    // of 640 x 480 u16 valid for the duration of the callback.
+    // SAFETY: in FREENECT_DEPTH_MM / REGISTERED / 11BIT mode at medium resolution the library hands a
+    // buffer of 640 x 480 u16 valid for the duration of the callback.
     let frame = unsafe { std::slice::from_raw_parts(depth as *const u16, WIDTH * HEIGHT) };
     latest.depth_mm.clear();
     latest.depth_mm.extend_from_slice(frame);
@@ -139,12 +140,37 @@ impl Drop for Context {
     }
 }
 
+type ListAttributes = unsafe extern "C" fn(ctx: *mut FreenectContext, list: *mut *mut DeviceAttributes) -> c_int;
+type FreeAttributes = unsafe extern "C" fn(list: *mut DeviceAttributes);
+
+/// A libfreenect function looked up at run time: the device listing is missing from some builds of
+/// the library (fakenect's replay library has none), and a binary linked against it directly would
+/// not even start there.
+fn optional_symbol(name: &CStr) -> Option<*mut c_void> {
+    // SAFETY: dlsym with RTLD_DEFAULT and a NUL-terminated name only looks the symbol up.
+    let p = unsafe { libc::dlsym(libc::RTLD_DEFAULT, name.as_ptr()) };
+    (!p.is_null()).then_some(p)
+}
+
 /// The camera serial numbers of the Kinects connected, for `scanrig devices`.
 pub fn list_serials() -> Result<Vec<String>, DeviceError> {
+    let missing = || DeviceError::Unsupported {
+        device: NAME.into(),
+        operation: "listing Kinects (this libfreenect has no device list)",
+    };
+    let list_fn = optional_symbol(c"freenect_list_device_attributes").ok_or_else(missing)?;
+    let free_fn = optional_symbol(c"freenect_free_device_attributes").ok_or_else(missing)?;
+    // SAFETY: the symbols are libfreenect's functions of these signatures (libfreenect.h).
+    let (list_fn, free_fn) = unsafe {
+        (
+            std::mem::transmute::<*mut c_void, ListAttributes>(list_fn),
+            std::mem::transmute::<*mut c_void, FreeAttributes>(free_fn),
+        )
+    };
     let ctx = Context::new()?;
     let mut list = std::ptr::null_mut();
     // SAFETY: a valid context; the list is freed below with the matching call.
-    let n = unsafe { freenect_list_device_attributes(ctx.0, &mut list) };
+    let n = unsafe { list_fn(ctx.0, &mut list) };
     let mut out = Vec::new();
     let mut cur = list;
     while !cur.is_null() {
@@ -158,7 +184,7 @@ pub fn list_serials() -> Result<Vec<String>, DeviceError> {
     }
     if !list.is_null() {
         // SAFETY: the list returned above, freed once.
-        unsafe { freenect_free_device_attributes(list) };
+        unsafe { free_fn(list) };
     }
     if n < 0 {
         return Err(DeviceError::Hardware {
@@ -176,6 +202,7 @@ pub struct FreenectDepthCamera {
     device: *mut FreenectDevice,
     latest: Box<Latest>,
     tracker: SequenceTracker,
+    disparity: bool,
     context: Context,
 }
 
@@ -218,8 +245,14 @@ impl FreenectDepthCamera {
                 source: Some(std::io::Error::new(std::io::ErrorKind::NotFound, format!("cannot open {what} ({rc})"))),
             });
         }
-        let mut cam = FreenectDepthCamera { device, latest: Box::default(), tracker: SequenceTracker::new(), context };
-        let format = if config.registered { FREENECT_DEPTH_REGISTERED } else { FREENECT_DEPTH_MM };
+        let disparity = config.depth_format == super::kinect::FreenectDepthFormat::Disparity;
+        let mut cam =
+            FreenectDepthCamera { device, latest: Box::default(), tracker: SequenceTracker::new(), disparity, context };
+        let format = match (disparity, config.registered) {
+            (true, _) => FREENECT_DEPTH_11BIT,
+            (false, true) => FREENECT_DEPTH_REGISTERED,
+            (false, false) => FREENECT_DEPTH_MM,
+        };
         // SAFETY: the device is open; the user pointer is the boxed `Latest`, which lives as long as
         // the device (see Drop); the callback only runs inside process_events on this thread.
         let rc = unsafe {
@@ -241,7 +274,10 @@ impl FreenectDepthCamera {
             return Err(DeviceError::Hardware {
                 device: NAME.into(),
                 code: rc.unsigned_abs().min(u16::MAX as u32) as u16,
-                detail: "cannot start the 640x480 millimetre depth stream".into(),
+                detail: format!(
+                    "cannot start the 640x480 {} depth stream",
+                    if disparity { "disparity" } else { "millimetre" }
+                ),
             });
         }
         Ok(cam)
@@ -273,7 +309,11 @@ impl super::DepthCamera for FreenectDepthCamera {
                     exposure_start,
                     width: WIDTH as u32,
                     height: HEIGHT as u32,
-                    depth_m: mm_to_m(&self.latest.depth_mm),
+                    depth_m: if self.disparity {
+                        self.latest.depth_mm.iter().map(|&d| super::kinect::disparity_to_m(d & 0x7ff)).collect()
+                    } else {
+                        mm_to_m(&self.latest.depth_mm)
+                    },
                 });
             }
             let left = deadline.saturating_duration_since(Instant::now());

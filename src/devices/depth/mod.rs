@@ -2,6 +2,7 @@
 
 #[cfg(feature = "freenect")]
 pub mod freenect;
+pub mod kinect;
 pub mod sim;
 
 use std::time::{Duration, Instant};

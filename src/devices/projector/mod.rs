@@ -4,6 +4,8 @@
 pub mod fbdev;
 pub mod framebuffer;
 pub mod sim;
+#[cfg(feature = "x11")]
+pub mod window;
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};

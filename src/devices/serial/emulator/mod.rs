@@ -31,7 +31,9 @@ pub trait EmulatedHardware: Send + Sync + std::fmt::Debug {
     fn set_laser(&self, index: usize, on: bool);
 }
 
-/// The simulated world turned and lit by an emulated board.
+/// The simulated world is the hardware behind an emulated serial board: a scan through the real
+/// serial code path (`port = "emulator:..."`) turns and lights the same simulated scene. A light or
+/// laser index the scene does not have is a pin with nothing connected: ignored, logged at debug.
 impl EmulatedHardware for crate::sim::SimWorld {
     fn set_angle(&self, degrees: f64) {
         self.set_turntable_angle(degrees);
