@@ -9,6 +9,7 @@
 //! - [`acquisition`]: scan sequences.
 //! - [`pipeline`]: reconstruction, pure functions over frames and cameras.
 //! - [`geometry`]: camera models and frames.
+//! - [`rigfile`]: loading a rig file: config values, then the drivers' checks, then calibration.
 //! - [`dataset`]: calibrated image sets on disk (cameras, view selections, masks).
 //! - [`scan`]: one scan job for every method (the driver, one flow per method), from rig file to
 //!   files on disk.
@@ -21,6 +22,7 @@ pub mod dataset;
 pub mod devices;
 pub mod geometry;
 pub mod pipeline;
+pub mod rigfile;
 pub mod scan;
 pub mod service;
 pub mod sim;

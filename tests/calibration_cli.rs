@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use scanrig::calibration::file::CalibrationFile;
-use scanrig::config;
+use scanrig::rigfile;
 use scanrig::geometry::Vector3;
 
 fn rig_path() -> PathBuf {
@@ -27,7 +27,7 @@ fn calibrate_camera_turntable_and_lights_through_the_cli() {
     let views = dir.path().join("views");
     let (c, r, v) = (calib.to_str().expect("utf-8"), rig_path(), views.to_str().expect("utf-8"));
     let r = r.to_str().expect("utf-8");
-    let truth = config::load(&rig_path()).expect("shipped rig").camera.model();
+    let truth = rigfile::load(&rig_path()).expect("shipped rig").camera.model();
 
     // Camera, captured from the simulated rig.
     let (ok, text) = scanrig(&[
@@ -160,7 +160,7 @@ fn calibrate_camera_turntable_and_lights_through_the_cli() {
         scanrig(&["calibrate", "lights", "--rig", r, "--views", "4", "--start-offset-mm", "40,-30,50", "--out", c]);
     assert!(ok, "{text}");
     let file = CalibrationFile::load(&calib).expect("updated");
-    let rig = config::load(&rig_path()).expect("rig");
+    let rig = rigfile::load(&rig_path()).expect("rig");
     let nominal = &rig.lights.as_ref().expect("lights").lights;
     assert_eq!(file.lights.len(), nominal.len());
     for l in &file.lights {
@@ -175,7 +175,7 @@ fn calibrate_camera_turntable_and_lights_through_the_cli() {
     std::fs::write(&rig_file, &with_calib).expect("rig file");
     let (ok, out) = scanrig(&["validate", "--rig", rig_file.to_str().expect("utf-8")]);
     assert!(ok, "{out}");
-    let loaded = config::load(&rig_file).expect("rig with calibration");
+    let loaded = rigfile::load(&rig_file).expect("rig with calibration");
     let model = loaded.camera.model();
     assert_eq!(model.intrinsics.fx, cam.fx_px);
     assert!((model.centre() - truth.centre()).norm() < 0.003);

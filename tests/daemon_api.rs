@@ -40,8 +40,10 @@ fn start_watch_fetch_and_bad_requests() {
     for (body, want) in [
         (&b"{not json"[..], 400),
         (&br#"{"positions": 8, "colour": "red"}"#[..], 422),
-        (&br#"{"positions": 1}"#[..], 422),
-        (&br#"{"method": "laser"}"#[..], 422),
+        (&br#"{"positions": 0}"#[..], 422),
+        (&br#"{"resolution": 1}"#[..], 422),
+        (&br#"{"method": "laser", "lights": [9]}"#[..], 422),
+        (&br#"{"method": "telepathy"}"#[..], 422),
     ] {
         let r = c.raw("POST", "/api/v1/scans", Some(body)).expect("request");
         assert_eq!(r.status, want, "{}", String::from_utf8_lossy(body));

@@ -6,7 +6,8 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc;
 
 use scanrig::acquisition::{position_angle, run_depth_scan, AcquisitionError, CancelToken};
-use scanrig::config::{self, ConfigError, Method};
+use scanrig::config::{ConfigError, Method};
+use scanrig::rigfile;
 use scanrig::devices::{build_rig, ErrorKind};
 
 fn shipped() -> PathBuf {
@@ -25,8 +26,8 @@ fn without_depth_camera(text: &str) -> String {
     format!("{}{}", &text[..start], &text[end..])
 }
 
-fn problems(text: &str) -> Vec<config::Problem> {
-    match config::parse(text, Path::new("rig.toml")) {
+fn problems(text: &str) -> Vec<scanrig::config::Problem> {
+    match rigfile::parse(text, Path::new("rig.toml")) {
         Err(ConfigError::Invalid { problems, .. }) => problems,
         other => panic!("expected validation problems, got {other:?}"),
     }
@@ -34,7 +35,7 @@ fn problems(text: &str) -> Vec<config::Problem> {
 
 #[test]
 fn shipped_rig_loads_and_validation_names_what_depth_fusion_needs() {
-    let rig = config::load(&shipped()).expect("shipped depth-fusion rig loads");
+    let rig = rigfile::load(&shipped()).expect("shipped depth-fusion rig loads");
     assert_eq!(rig.reconstruction.method, Method::DepthFusion);
     assert!(rig.depth_camera.is_some() && rig.reconstruction.depth_fusion.missing_is_free);
 
@@ -48,7 +49,7 @@ fn shipped_rig_loads_and_validation_names_what_depth_fusion_needs() {
 
 #[test]
 fn one_fresh_depth_frame_per_position_at_the_planned_angle() {
-    let mut rig_config = config::load(&shipped()).expect("loads");
+    let mut rig_config = rigfile::load(&shipped()).expect("loads");
     rig_config.scan.positions = 6;
     let mut rig = build_rig(&rig_config).expect("rig opens");
     let (tx, rx) = mpsc::sync_channel(8);
@@ -76,7 +77,7 @@ fn one_fresh_depth_frame_per_position_at_the_planned_angle() {
     assert_ne!(views[0].frame.depth_m, views[1].frame.depth_m);
 
     // A rig without a depth camera fails at the first capture with an `Unsupported` device error.
-    let mut no_depth = config::parse(
+    let mut no_depth = rigfile::parse(
         &without_depth_camera(&shipped_text()).replace("depth-fusion\"\n", "space-carving\"\n"),
         Path::new("rig.toml"),
     )

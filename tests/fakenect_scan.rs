@@ -92,7 +92,7 @@ fn a_scan_under_fakenect_fuses_the_model_the_simulated_depth_camera_gives() {
     std::fs::write(&kinect_rig, RIG.replace("DEPTH_CAMERA", FREENECT_DEPTH)).expect("write");
 
     // The simulated depth camera's view at angle 0, recorded as the Kinect would send it.
-    let config = scanrig::config::load(&sim_rig).expect("sim rig");
+    let config = scanrig::rigfile::load(&sim_rig).expect("sim rig");
     let mut rig = scanrig::devices::build_rig(&config).expect("sim devices");
     let depth = rig.depth_camera.as_mut().expect("depth camera").capture_depth(Duration::from_secs(5)).expect("depth");
     assert_eq!((depth.width, depth.height), (640, 480));

@@ -120,7 +120,7 @@ fn a_real_rig_validates_or_names_each_missing_feature_at_its_line() {
     .filter(|(_, _, built, _)| !built)
     .map(|(k, f, _, l)| (k, f, l))
     .collect();
-    match scanrig::config::parse(&text, &fixture()) {
+    match scanrig::rigfile::parse(&text, &fixture()) {
         Ok(rig) => {
             assert!(expected.is_empty(), "features missing but the rig validated");
             assert_eq!(rig.camera.model().width, 1280);
@@ -149,7 +149,7 @@ fn camera_identities_and_settings_are_checked() {
         .replace("exposure_us = 20000", "exposure_us = 0")
         .replace("device = \"/dev/fb1\"", "device = \"fb1\"");
     let Err(scanrig::config::ConfigError::Invalid { problems, .. }) =
-        scanrig::config::parse(&bad, Path::new("rig.toml"))
+        scanrig::rigfile::parse(&bad, Path::new("rig.toml"))
     else {
         panic!("invalid rig accepted")
     };
@@ -162,7 +162,7 @@ fn camera_identities_and_settings_are_checked() {
     assert!(find("projector.device").message.contains("/dev/fb1"));
 
     let unknown = text.replace("gain = 0", "gian = 0");
-    let e = scanrig::config::parse(&unknown, Path::new("rig.toml")).expect_err("unknown control key");
+    let e = scanrig::rigfile::parse(&unknown, Path::new("rig.toml")).expect_err("unknown control key");
     assert!(e.to_string().contains("gian"), "{e}");
 }
 
@@ -234,7 +234,7 @@ fn genicam_and_window_settings_are_checked_at_their_lines() {
         "[projector]\nkind = \"window\"\noutput = \"screen:x\"\nwidth = 1280\nheight = 800\nrefresh_hz = 0.5\n";
     let text = with_genicam_and_window(camera, projector);
     let Err(scanrig::config::ConfigError::Invalid { problems, .. }) =
-        scanrig::config::parse(&text, Path::new("rig.toml"))
+        scanrig::rigfile::parse(&text, Path::new("rig.toml"))
     else {
         panic!("invalid rig accepted:\n{text}")
     };
@@ -260,7 +260,7 @@ fn genicam_and_window_settings_are_checked_at_their_lines() {
                   trigger = \"line\"\ntrigger_line = \"Line1\"\ntrigger_activation = \"falling-edge\"\ntrigger_delay_us = 10.0\n";
     let projector = "[projector]\nkind = \"window\"\noutput = \"HDMI-1\"\nwidth = 1280\nheight = 800\n";
     let text = with_genicam_and_window(camera, projector);
-    match scanrig::config::parse(&text, Path::new("rig.toml")) {
+    match scanrig::rigfile::parse(&text, Path::new("rig.toml")) {
         Ok(rig) => assert!(matches!(rig.camera, scanrig::config::CameraConfig::Genicam(_))),
         Err(scanrig::config::ConfigError::Invalid { problems, .. }) => {
             let keys: Vec<&str> = problems.iter().map(|p| p.key.as_str()).collect();

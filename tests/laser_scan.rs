@@ -123,7 +123,7 @@ fn laser_planes_calibrate_on_a_known_box() {
         "config/rigs/laser.toml",
         &[("scene = \"cup\"", "scene = \"box\""), ("positions = 180", "positions = 8")],
     );
-    let config = scanrig::config::load(&path).expect("derived rig loads");
+    let config = scanrig::rigfile::load(&path).expect("derived rig loads");
     let mut rig = build_rig(&config).expect("simulated rig");
     let (tx, rx) = mpsc::sync_channel::<LaserView>(16);
     let summary = run_laser_scan(&mut rig, &config.scan, 0, &[0, 1], &tx, &CancelToken::new(), &mut |_| {})

@@ -4,7 +4,8 @@
 use std::path::Path;
 use std::time::Duration;
 
-use scanrig::config::{self, ConfigError};
+use scanrig::config::ConfigError;
+use scanrig::rigfile;
 use scanrig::devices::build_rig;
 
 fn rig(controller: &str, turntable_kind: &str, lights_kind: &str) -> String {
@@ -55,7 +56,7 @@ resolution = 32
 }
 
 fn problems(text: &str) -> Vec<String> {
-    match config::parse(text, Path::new("rig.toml")) {
+    match rigfile::parse(text, Path::new("rig.toml")) {
         Ok(_) => Vec::new(),
         Err(ConfigError::Invalid { problems, .. }) => {
             problems.iter().map(|p| format!("{}: {}", p.key, p.message)).collect()
@@ -69,7 +70,7 @@ const EMULATED: &str = "[controller]\nport = \"emulator:scanrig\"\nreply_timeout
 #[test]
 fn serial_rig_parses_and_builds_one_shared_controller() {
     let text = rig(EMULATED, "serial", "serial");
-    let cfg = config::parse(&text, Path::new("rig.toml")).unwrap_or_else(|e| panic!("{e}"));
+    let cfg = rigfile::parse(&text, Path::new("rig.toml")).unwrap_or_else(|e| panic!("{e}"));
     let mut rig = build_rig(&cfg).unwrap_or_else(|e| panic!("{e}"));
     let serial = rig.serial.as_ref().expect("the rig has a serial controller");
     assert!(serial.emulator.is_some());
@@ -129,7 +130,7 @@ fn port_specs_parse() {
 fn absent_usb_board_is_a_disconnected_state_not_a_hang() {
     let controller = "[controller]\nport = \"usb:0001:0002:no-such-board\"\nreply_timeout_ms = 100\n";
     let text = rig(controller, "serial", "serial");
-    let cfg = config::parse(&text, Path::new("rig.toml")).unwrap_or_else(|e| panic!("{e}"));
+    let cfg = rigfile::parse(&text, Path::new("rig.toml")).unwrap_or_else(|e| panic!("{e}"));
     let mut rig = build_rig(&cfg).expect("an absent board does not stop the rig from being built");
     let err = rig.turntable.move_to(10.0, Duration::from_secs(1)).expect_err("no such board");
     assert_eq!(err.kind(), scanrig::devices::ErrorKind::Disconnected, "{err}");

@@ -6,14 +6,15 @@
 use std::path::Path;
 
 use scanrig::acquisition::CancelToken;
-use scanrig::config::{self, RigConfig};
+use scanrig::config::RigConfig;
+use scanrig::rigfile;
 use scanrig::geometry::{turntable_rotation, Vector3};
 use scanrig::pipeline::light_calibration::{calibrate_point_light, LightFitParams, Sphere, SphereObservation};
 use scanrig::scan::run_scan;
 use scanrig::sim::{FrameNoise, Lighting, Material, PointLight, Primitive, RayTable, Scene, SimWorld, Solid};
 
 fn shipped() -> RigConfig {
-    config::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/shadow-carving.toml")).expect("shipped rig")
+    rigfile::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/shadow-carving.toml")).expect("shipped rig")
 }
 
 fn configured_lights(rig: &RigConfig) -> Vec<(Vector3<f64>, f64)> {

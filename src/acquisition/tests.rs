@@ -12,7 +12,7 @@ fn small_rig(positions: u32) -> RigConfig {
         .replace("width = 640\nheight = 480", "width = 64\nheight = 48")
         .replace("fx = 1600.0\nfy = 1600.0\ncx = 320.0\ncy = 240.0", "fx = 160.0\nfy = 160.0\ncx = 32.0\ncy = 24.0")
         .replace("positions = 24", &format!("positions = {positions}"));
-    crate::config::parse(&text, &path).expect("derived rig is valid")
+    crate::rigfile::parse(&text, &path).expect("derived rig is valid")
 }
 
 fn lights_off(rig: &Rig) -> bool {

@@ -347,12 +347,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Command::Validate { rig } => {
-            scanrig::config::load(&rig)?;
+            scanrig::rigfile::load(&rig)?;
             println!("{}: ok", rig.display());
             Ok(())
         }
         Command::Reconstruct { scan: Some(scan_dir), method, resolution, smooth, photo, out, .. } => {
-            let mut config = scanrig::config::load(&scan_dir.join(scan::driver::RIG_FILE))
+            let mut config = scanrig::rigfile::load(&scan_dir.join(scan::driver::RIG_FILE))
                 .with_context(|| format!("{} is not a stored scan", scan_dir.display()))?;
             if let Some(m) = method {
                 config.reconstruction.method = m;
@@ -530,7 +530,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Command::Scan { rig, out } => {
-            let config = scanrig::config::load(&rig)?;
+            let config = scanrig::rigfile::load(&rig)?;
             let total = config.scan.positions as u64;
             let mut reporter = Reporter::new(total);
             let cancel = CancelToken::new();

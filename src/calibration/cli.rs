@@ -17,7 +17,8 @@ use super::file::{CalibrationFile, CalibrationFileError, CameraSection, LightSec
 use super::turntable::{calibrate_turntable, TurntableOptions, TurntableView};
 use super::zhang::{calibrate_camera, CalibrationOptions, PlanarView};
 use super::{BoardSpec, CalibrationError};
-use crate::config::{self, CameraConfig, ConfigError, RigConfig, TurntableConfig};
+use crate::config::{CameraConfig, ConfigError, RigConfig, TurntableConfig};
+use crate::rigfile;
 use crate::geometry::{turntable_rotation, Intrinsics};
 use crate::pipeline::light_calibration::{
     calibrate_point_light, LightCalibrationError, LightFitParams, Sphere, SphereObservation,
@@ -323,7 +324,7 @@ fn calibrate_camera_command(source: &BoardSource, distortion: bool, fix_pp: bool
     let (images, (width, height)) = match (&source.images, &source.rig) {
         (Some(dir), _) => load_images(dir)?,
         (None, Some(rig_path)) => {
-            let rig = config::load(rig_path)?;
+            let rig = rigfile::load(rig_path)?;
             check_sim_rig(&rig)?;
             let sim = sim_board_rig(&rig, &board)?;
             let imgs: Vec<BoardImage> = sim
@@ -402,7 +403,7 @@ fn calibrate_turntable_command(
     if !board_height_mm.is_finite() {
         return Err(WorkflowError::Argument { arg: "board-height-mm", message: "must be a finite number".into() });
     }
-    let rig = source.rig.as_deref().map(config::load).transpose()?;
+    let rig = source.rig.as_deref().map(rigfile::load).transpose()?;
     let (images, (width, height)) = match (&source.images, &rig) {
         (Some(dir), _) => load_images(dir)?,
         (None, Some(rig)) => {
@@ -537,7 +538,7 @@ fn calibrate_lights_command(
     start_offset: Vector3<f64>,
     out: &Path,
 ) -> Result<(), WorkflowError> {
-    let rig = config::load(rig_path)?;
+    let rig = rigfile::load(rig_path)?;
     check_sim_rig(&rig)?;
     if !(radius.is_finite() && radius > 0.0) {
         return Err(WorkflowError::Argument { arg: "sphere-radius-mm", message: "must be a positive length".into() });

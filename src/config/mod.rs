@@ -3,6 +3,7 @@
 
 pub mod schema;
 pub mod structured_light;
+pub mod vocab;
 
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -70,39 +71,49 @@ pub enum ConfigError {
         path: PathBuf,
         /// 1-based line of the `calibration` key.
         line: usize,
-        /// What is wrong with the calibration file.
+        /// What is wrong with the calibration file (the calibration layer's error).
         #[source]
-        source: crate::calibration::file::CalibrationFileError,
+        source: Box<dyn std::error::Error + Send + Sync>,
     },
 }
 
-/// Read, parse and validate a rig file.
+/// Read, parse and check the values of a rig file (this layer only: the device checks and the
+/// calibration file are composed on top by [`crate::rigfile::load`]).
 pub fn load(path: &Path) -> Result<RigConfig, ConfigError> {
     let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.to_owned(), source })?;
     parse(&text, path)
 }
 
-/// Parse and validate rig-file text; `path` is used in messages and to find the calibration file of
-/// `[rig] calibration` (relative to the rig file's directory), which is then applied.
+/// Parse rig-file text and check its values; `path` is used in messages.
 pub fn parse(text: &str, path: &Path) -> Result<RigConfig, ConfigError> {
-    let mut config: RigConfig = toml::from_str(text).map_err(|e| {
+    parse_with(text, path, |_| Vec::new())
+}
+
+/// Parse rig-file text and check its values plus the problems `more` finds (a higher layer's, e.g.
+/// the drivers' checks of their settings), all reported at once with their lines.
+pub fn parse_with(
+    text: &str,
+    path: &Path,
+    more: impl FnOnce(&RigConfig) -> Vec<Problem>,
+) -> Result<RigConfig, ConfigError> {
+    let config: RigConfig = toml::from_str(text).map_err(|e| {
         let (line, column) = e.span().map(|s| line_col(text, s.start)).unwrap_or((1, 1));
         ConfigError::Parse { path: path.to_owned(), line, column, message: e.message().trim().to_owned() }
     })?;
     let mut problems = config.validate();
+    problems.extend(more(&config));
     if !problems.is_empty() {
         locate(text, &mut problems);
         return Err(ConfigError::Invalid { path: path.to_owned(), problems });
     }
-    if let Some(rel) = config.rig.calibration.clone() {
-        let file = path.parent().map_or(rel.clone(), |d| d.join(&rel));
-        crate::calibration::file::apply_to_rig(&file, &mut config).map_err(|source| {
-            let mut p = [Problem { key: "rig.calibration".into(), line: None, message: String::new() }];
-            locate(text, &mut p);
-            ConfigError::Calibration { path: path.to_owned(), line: p[0].line.unwrap_or(1), source }
-        })?;
-    }
     Ok(config)
+}
+
+/// The 1-based line of `key` (dotted path) in rig-file `text`, if it is there.
+pub fn line_of(text: &str, key: &str) -> Option<usize> {
+    let mut p = [Problem { key: key.into(), line: None, message: String::new() }];
+    locate(text, &mut p);
+    p[0].line
 }
 
 fn line_col(text: &str, offset: usize) -> (usize, usize) {
@@ -155,8 +166,8 @@ impl RigConfig {
         if !serial_turntable && !serial_lights {
             bad("controller", "no device has kind = \"serial\", so this section is unused".into());
         }
-        match crate::devices::serial::PortSpec::parse(&c.port) {
-            Ok(crate::devices::serial::PortSpec::Emulator(name)) => {
+        match vocab::PortSpec::parse(&c.port) {
+            Ok(vocab::PortSpec::Emulator(name)) => {
                 if name != c.dialect.name() {
                     bad(
                         "controller.port",
@@ -311,11 +322,9 @@ impl RigConfig {
             }
             CameraConfig::V4l2(c) | CameraConfig::Uvc(c) => {
                 check_camera(&mut bad, "camera", c.width, c.height, &c.calibration);
-                crate::devices::hardware::validate_camera(&self.camera, c, &mut bad);
             }
             CameraConfig::Genicam(c) => {
                 check_camera(&mut bad, "camera", c.width, c.height, &c.calibration);
-                crate::devices::hardware::validate_genicam(c, &mut bad);
             }
         }
         match &self.projector {
@@ -333,13 +342,11 @@ impl RigConfig {
                 if let Some(cal) = &p.calibration {
                     check_camera(&mut bad, "projector", p.width, p.height, cal);
                 }
-                crate::devices::hardware::validate_fbdev(p, &mut bad);
             }
             Some(ProjectorConfig::Window(p)) => {
                 if let Some(cal) = &p.calibration {
                     check_camera(&mut bad, "projector", p.width, p.height, cal);
                 }
-                crate::devices::hardware::validate_window(p, &mut bad);
             }
             None => {}
         }
@@ -356,7 +363,6 @@ impl RigConfig {
                     FreenectDepthConfig::HEIGHT,
                     &d.calibration,
                 );
-                crate::devices::hardware::validate_freenect(d, &mut bad);
             }
             None => {}
         }

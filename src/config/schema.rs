@@ -361,7 +361,7 @@ pub struct RealCameraConfig {
     /// Pixel format: `grey`, `yuyv`, `mjpeg` or `rgb24`; absent = the first the camera offers at this
     /// size, uncompressed preferred.
     #[serde(default)]
-    pub format: Option<crate::devices::camera::pixel::PixelFormat>,
+    pub format: Option<super::vocab::PixelFormat>,
     /// Frame rate, frames per second; absent = the camera's default.
     #[serde(default)]
     pub fps: Option<u32>,
@@ -371,7 +371,7 @@ pub struct RealCameraConfig {
     /// `[camera.controls]`: exposure, gain, white balance, focus and further controls locked for the
     /// scan and restored after it.
     #[serde(default)]
-    pub controls: crate::devices::camera::controls::ManualControls,
+    pub controls: super::vocab::ManualControls,
     /// `[camera.calibration]`.
     pub calibration: CameraCalibration,
 }
@@ -405,7 +405,7 @@ pub struct GenicamCameraConfig {
     pub height: u32,
     /// `PixelFormat`: `Mono8` or `RGB8`.
     #[serde(default)]
-    pub pixel_format: crate::devices::camera::genicam_features::GenicamPixelFormat,
+    pub pixel_format: super::vocab::GenicamPixelFormat,
     /// Exposure time, microseconds; absent = the camera's current value.
     #[serde(default)]
     pub exposure_us: Option<f64>,
@@ -418,13 +418,13 @@ pub struct GenicamCameraConfig {
     pub fps: Option<f64>,
     /// How exposures start: `free-run`, `software` or `line`.
     #[serde(default)]
-    pub trigger: crate::devices::camera::genicam_features::TriggerMode,
+    pub trigger: super::vocab::TriggerMode,
     /// With `trigger = "line"`: the input line (`TriggerSource`), e.g. `Line0`.
     #[serde(default = "default_trigger_line")]
     pub trigger_line: String,
     /// With `trigger = "line"`: the edge or level that starts an exposure.
     #[serde(default)]
-    pub trigger_activation: crate::devices::camera::genicam_features::TriggerActivation,
+    pub trigger_activation: super::vocab::TriggerActivation,
     /// With `trigger = "line"`: delay from the trigger to the start of exposure, microseconds.
     #[serde(default)]
     pub trigger_delay_us: Option<f64>,
@@ -682,7 +682,7 @@ pub struct FreenectDepthConfig {
     /// `mm` (the unit's calibrated millimetres) or `disparity` (raw 11-bit disparity converted by
     /// the driver; what fakenect replays).
     #[serde(default)]
-    pub depth_format: crate::devices::depth::kinect::FreenectDepthFormat,
+    pub depth_format: super::vocab::FreenectDepthFormat,
     /// `[depth_camera.calibration]`: of the infrared camera (or the RGB camera when registered), at
     /// 640x480.
     pub calibration: CameraCalibration,

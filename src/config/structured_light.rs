@@ -367,7 +367,8 @@ fn validate_coding(config: &RigConfig, s: &StructuredLightConfig, bad: &mut dyn 
 mod tests {
     use std::path::Path;
 
-    use crate::config::{parse, ConfigError};
+    use crate::config::ConfigError;
+    use crate::rigfile::parse;
 
     fn shipped() -> String {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/structured-light.toml");

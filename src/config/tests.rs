@@ -1,6 +1,8 @@
 use std::path::Path;
 
 use super::*;
+// The composed loader: values, the drivers' checks and the calibration file, as users load rig files.
+use crate::rigfile::{load, parse};
 
 const MINIMAL: &str = r#"
 [rig]

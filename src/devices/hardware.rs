@@ -26,6 +26,30 @@ fn missing_feature(kind: &str, feature: &str) -> String {
 }
 
 /// Checks of a real camera's section (`camera.*` keys).
+/// The drivers' checks of a rig file's device settings (a kind whose cargo feature is not built, a
+/// device path that is not a stable identity, ...), as problems keyed like `RigConfig::validate`'s.
+pub fn check(config: &crate::config::RigConfig) -> Vec<crate::config::Problem> {
+    use crate::config::{CameraConfig, DepthCameraConfig, ProjectorConfig};
+    let mut out = Vec::new();
+    let mut bad = |key: &str, message: String| {
+        out.push(crate::config::Problem { key: key.to_owned(), line: None, message });
+    };
+    match &config.camera {
+        CameraConfig::V4l2(c) | CameraConfig::Uvc(c) => validate_camera(&config.camera, c, &mut bad),
+        CameraConfig::Genicam(c) => validate_genicam(c, &mut bad),
+        CameraConfig::Sim(_) => {}
+    }
+    match &config.projector {
+        Some(ProjectorConfig::Fbdev(p)) => validate_fbdev(p, &mut bad),
+        Some(ProjectorConfig::Window(p)) => validate_window(p, &mut bad),
+        Some(ProjectorConfig::Sim(_)) | None => {}
+    }
+    if let Some(DepthCameraConfig::Freenect(d)) = &config.depth_camera {
+        validate_freenect(d, &mut bad);
+    }
+    out
+}
+
 pub fn validate_camera(config: &CameraConfig, c: &RealCameraConfig, bad: &mut dyn FnMut(&str, String)) {
     if let Some((kind, feature, false)) = camera_feature(config) {
         bad("camera.kind", missing_feature(kind, feature));

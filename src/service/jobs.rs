@@ -296,7 +296,7 @@ impl Jobs {
 
     /// The rig file stored with scan `id`.
     fn stored_config(&self, id: &str) -> Result<RigConfig, JobError> {
-        crate::config::load(&self.store.dir(id).join(crate::scan::driver::RIG_FILE))
+        crate::rigfile::load(&self.store.dir(id).join(crate::scan::driver::RIG_FILE))
             .map_err(|source| JobError::StoredConfig { id: id.to_owned(), source })
     }
 

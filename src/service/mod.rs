@@ -81,7 +81,7 @@ pub async fn run(
     if !opts.listen.ip().is_loopback() && opts.token.is_none() {
         return Err(ServiceError::TokenRequired(opts.listen));
     }
-    let config = Arc::new(crate::config::load(&opts.config_path).map_err(ServiceError::Config)?);
+    let config = Arc::new(crate::rigfile::load(&opts.config_path).map_err(ServiceError::Config)?);
     let (store, interrupted) = store::ScanStore::open(&opts.state_dir).map_err(ServiceError::Store)?;
     for id in &interrupted {
         tracing::warn!(scan = %id, "scan was interrupted by a crash or power loss; it can be resumed");
@@ -171,7 +171,7 @@ async fn reload_on_sighup(path: PathBuf, state: api::AppState, token: Cancellati
             got = hup.recv() => if got.is_none() { return },
         }
         let _ = notify::notify("RELOADING=1");
-        match crate::config::load(&path) {
+        match crate::rigfile::load(&path) {
             Err(e) => {
                 tracing::error!(error = %rig::error_chain(&e), "reload: the new rig file is invalid; keeping the old one")
             }

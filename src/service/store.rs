@@ -259,7 +259,7 @@ mod tests {
 
     fn config() -> RigConfig {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/simulated.toml");
-        crate::config::load(&path).expect("shipped rig")
+        crate::rigfile::load(&path).expect("shipped rig")
     }
 
     #[test]

@@ -5,7 +5,8 @@ use std::path::{Path, PathBuf};
 use nalgebra::Vector3;
 
 use super::*;
-use crate::config::{self, CameraConfig, RigConfig};
+use crate::config::{CameraConfig, RigConfig};
+use crate::rigfile;
 use crate::devices::Pattern;
 use crate::geometry::{CameraModel, Intrinsics, Pose};
 
@@ -16,7 +17,7 @@ fn rig_dir() -> PathBuf {
 /// The shipped simulated rig with `scene`, its camera shrunk to 160x120 (same field of view) so debug
 /// tests stay fast.
 pub(crate) fn small_rig(scene: &str) -> RigConfig {
-    let mut rig = config::load(&rig_dir().join("simulated.toml")).expect("simulated.toml loads");
+    let mut rig = rigfile::load(&rig_dir().join("simulated.toml")).expect("simulated.toml loads");
     if let Some(s) = rig.sim.as_mut() {
         s.scene = scene.to_owned();
     }
@@ -38,7 +39,7 @@ fn shipped_rigs() -> Vec<(PathBuf, RigConfig)> {
     for entry in std::fs::read_dir(rig_dir()).expect("config/rigs") {
         let path = entry.expect("dir entry").path();
         if path.extension().is_some_and(|e| e == "toml") {
-            let rig = config::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            let rig = rigfile::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
             if rig.sim.is_some() {
                 out.push((path, rig));
             }
@@ -276,7 +277,7 @@ fn projector_pattern_lands_on_the_object_where_the_projector_sees_it() {
 
 #[test]
 fn laser_line_pixels_lie_on_the_laser_plane() {
-    let rig = config::load(&rig_dir().join("simulated.toml")).expect("simulated.toml");
+    let rig = rigfile::load(&rig_dir().join("simulated.toml")).expect("simulated.toml");
     let world = SimWorld::from_config(rig.sim.as_ref().expect("sim"), &rig).expect("world");
     let model = rig.camera.model();
     let rays = RayTable::new(model);
@@ -348,7 +349,7 @@ fn world_changes_are_counted_and_bad_requests_refused() {
 
 /// Binary silhouette of an image by the rig's recipe: max per-channel difference from the background
 /// above the threshold, then a closing (dilate, erode) with discs `x² + y² <= r²`.
-fn silhouette(img: &image::RgbImage, sil: &config::SilhouetteConfig) -> Vec<bool> {
+fn silhouette(img: &image::RgbImage, sil: &crate::config::SilhouetteConfig) -> Vec<bool> {
     let (w, h) = (img.width() as i64, img.height() as i64);
     let mask: Vec<bool> = img
         .pixels()
@@ -450,7 +451,7 @@ fn space_carving_containment_of_shipped_rigs() {
 #[test]
 #[cfg_attr(debug_assertions, ignore = "timing is only meaningful in release")]
 fn render_timing_640x480() {
-    let rig = config::load(&rig_dir().join("simulated.toml")).expect("simulated.toml");
+    let rig = rigfile::load(&rig_dir().join("simulated.toml")).expect("simulated.toml");
     let world = SimWorld::from_config(rig.sim.as_ref().expect("sim"), &rig).expect("world");
     let t = std::time::Instant::now();
     let rays = RayTable::new(rig.camera.model());

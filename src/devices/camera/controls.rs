@@ -7,7 +7,8 @@
 //! when it is closed. The control ids and units are V4L2's; a [`ControlBackend`] reads and writes them
 //! (the V4L2 device, or a map in a test).
 
-use std::collections::BTreeMap;
+
+pub use crate::config::vocab::{ManualControls};
 
 /// V4L2 control ids (`linux/v4l2-controls.h`) used by the scan settings.
 pub mod cid {
@@ -81,28 +82,6 @@ pub trait ControlBackend {
     fn get(&mut self, id: u32) -> std::io::Result<i64>;
     /// Set a value.
     fn set(&mut self, id: u32, value: i64) -> std::io::Result<()>;
-}
-
-/// The manual settings of a scan; `None` leaves a control as the device has it.
-#[derive(Debug, Clone, Default, PartialEq, serde::Deserialize, serde::Serialize)]
-#[serde(deny_unknown_fields)]
-pub struct ManualControls {
-    /// Exposure time, microseconds; sets auto exposure to manual.
-    #[serde(default)]
-    pub exposure_us: Option<u32>,
-    /// Gain, device units; turns auto gain off.
-    #[serde(default)]
-    pub gain: Option<i64>,
-    /// White balance temperature, kelvin; turns auto white balance off.
-    #[serde(default)]
-    pub white_balance_k: Option<i64>,
-    /// Focus, device units; turns autofocus off.
-    #[serde(default)]
-    pub focus: Option<i64>,
-    /// Further controls by their V4L2 name (as `v4l2-ctl --list-ctrls` prints it, e.g.
-    /// `"trigger_mode" = 1` for a camera with an external trigger input), set after the others.
-    #[serde(default)]
-    pub extra: BTreeMap<String, i64>,
 }
 
 /// Why a control could not be locked or restored.

@@ -14,38 +14,8 @@
 //!   host arrival time moved back by exposure and readout, and frames triggered before the change are
 //!   dropped as stale like free-run ones.
 
-use serde::Deserialize;
 
-/// `camera.trigger`: how each exposure is started.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum TriggerMode {
-    /// The camera runs at its frame rate (`TriggerMode = Off`).
-    #[default]
-    FreeRun,
-    /// The driver triggers each frame (`TriggerSource = Software`, `TriggerSoftware`).
-    Software,
-    /// A hardware input line triggers each frame (`TriggerSource = camera.trigger_line`).
-    Line,
-}
-
-/// `camera.trigger_activation`: which edge or level of the line starts an exposure
-/// (`TriggerActivation`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum TriggerActivation {
-    /// `RisingEdge`.
-    #[default]
-    RisingEdge,
-    /// `FallingEdge`.
-    FallingEdge,
-    /// `AnyEdge`.
-    AnyEdge,
-    /// `LevelHigh`.
-    LevelHigh,
-    /// `LevelLow`.
-    LevelLow,
-}
+pub use crate::config::vocab::{GenicamPixelFormat, TriggerMode, TriggerActivation};
 
 impl TriggerActivation {
     /// The GenICam enumeration entry.
@@ -58,17 +28,6 @@ impl TriggerActivation {
             TriggerActivation::LevelLow => "LevelLow",
         }
     }
-}
-
-/// `camera.pixel_format`: the GenICam pixel formats the driver converts to RGB.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
-pub enum GenicamPixelFormat {
-    /// `Mono8`: 8-bit grey.
-    #[default]
-    Mono8,
-    /// `RGB8`: packed 8-bit R, G, B.
-    #[serde(rename = "RGB8")]
-    Rgb8,
 }
 
 impl GenicamPixelFormat {
@@ -172,7 +131,7 @@ mod tests {
 
     #[test]
     fn rig_file_spellings() {
-        #[derive(Deserialize, serde::Serialize)]
+        #[derive(serde::Deserialize)]
         struct T {
             t: TriggerMode,
             a: TriggerActivation,

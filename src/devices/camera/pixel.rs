@@ -6,19 +6,7 @@
 
 use std::fmt;
 
-/// A pixel format a camera delivers, identified by its V4L2 four-character code.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Deserialize, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum PixelFormat {
-    /// `GREY`: 8-bit luminance, one byte per pixel.
-    Grey,
-    /// `YUYV`: packed 4:2:2, `Y0 U Y1 V` for each pair of pixels (BT.601, limited range).
-    Yuyv,
-    /// `MJPG`: each frame a JPEG image.
-    Mjpeg,
-    /// `RGB3`: packed 8-bit `R G B`.
-    Rgb24,
-}
+pub use crate::config::vocab::{PixelFormat};
 
 impl PixelFormat {
     /// Every format, in the order a driver prefers them when the rig file says `auto`: lossless

@@ -16,6 +16,8 @@
 use std::io::Write as _;
 use std::path::Path;
 
+pub use crate::config::vocab::{FreenectDepthFormat};
+
 /// `a` of `z = 1 / (a·d + b)`, 1/metres per disparity unit.
 pub const DISPARITY_A: f64 = -0.003_071_101_6;
 /// `b` of `z = 1 / (a·d + b)`, 1/metres.
@@ -24,18 +26,6 @@ pub const DISPARITY_B: f64 = 3.330_949_516_1;
 pub const NO_READING: u16 = 2047;
 /// The largest disparity that maps to a positive depth.
 pub const MAX_DISPARITY: u16 = 1083;
-
-/// How `[depth_camera] kind = "freenect"` asks libfreenect for depth.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum FreenectDepthFormat {
-    /// Millimetres from the unit's factory calibration (`FREENECT_DEPTH_MM`, or `REGISTERED`).
-    #[default]
-    Mm,
-    /// Raw 11-bit disparity (`FREENECT_DEPTH_11BIT`) converted with [`disparity_to_m`]; the only
-    /// format fakenect replays.
-    Disparity,
-}
 
 /// Depth in metres of raw disparity `d`; 0 (no measurement) for [`NO_READING`] and for values past
 /// [`MAX_DISPARITY`].

@@ -6,6 +6,8 @@ use std::time::Duration;
 
 use super::error::LinkError;
 
+pub use crate::config::vocab::{PortSpec, PortSpecError};
+
 /// A byte pipe to a board: a serial port, one end of a pseudo-terminal, or a test script. Reads wait
 /// at most the timeout set last and then fail with `TimedOut`.
 pub trait Transport: Read + Write + Send + std::fmt::Debug {
@@ -31,68 +33,6 @@ pub trait Opener: Send + std::fmt::Debug {
     fn open(&mut self) -> Result<Box<dyn Transport>, LinkError>;
     /// The port as configured, for logs.
     fn describe(&self) -> String;
-}
-
-/// Which port to open, from the config's `port` string.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum PortSpec {
-    /// A device path: `/dev/serial/by-id/...` (preferred: stable across replugging) or any other.
-    Path(PathBuf),
-    /// `usb:VID:PID[:SERIAL]`, hexadecimal ids: the first USB serial port that matches.
-    Usb {
-        /// USB vendor id.
-        vid: u16,
-        /// USB product id.
-        pid: u16,
-        /// USB serial number, when given.
-        serial: Option<String>,
-    },
-    /// `emulator:<dialect>`: a firmware emulator on a pseudo-terminal, started with the driver.
-    Emulator(String),
-}
-
-/// Why a `port` string is not usable.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum PortSpecError {
-    /// `usb:` not followed by `VID:PID[:SERIAL]` in hexadecimal.
-    #[error("`{0}`: expected usb:VID:PID or usb:VID:PID:SERIAL with hexadecimal ids, e.g. usb:2341:0043")]
-    BadUsb(String),
-    /// Empty.
-    #[error("port is empty")]
-    Empty,
-    /// Not a path, `usb:` or `emulator:`.
-    #[error("`{0}`: expected a device path (/dev/serial/by-id/...), usb:VID:PID[:SERIAL] or emulator:<dialect>")]
-    Unknown(String),
-}
-
-impl PortSpec {
-    /// Parse the config's `port`.
-    pub fn parse(s: &str) -> Result<Self, PortSpecError> {
-        let s = s.trim();
-        if s.is_empty() {
-            return Err(PortSpecError::Empty);
-        }
-        if let Some(rest) = s.strip_prefix("usb:") {
-            let mut parts = rest.splitn(3, ':');
-            let hex = |p: Option<&str>| {
-                p.filter(|p| !p.is_empty() && p.len() <= 4).and_then(|p| u16::from_str_radix(p, 16).ok())
-            };
-            let vid = hex(parts.next()).ok_or_else(|| PortSpecError::BadUsb(s.to_owned()))?;
-            let pid = hex(parts.next()).ok_or_else(|| PortSpecError::BadUsb(s.to_owned()))?;
-            let serial = match parts.next() {
-                Some("") => return Err(PortSpecError::BadUsb(s.to_owned())),
-                other => other.map(str::to_owned),
-            };
-            return Ok(PortSpec::Usb { vid, pid, serial });
-        }
-        if let Some(rest) = s.strip_prefix("emulator:") {
-            return Ok(PortSpec::Emulator(rest.to_owned()));
-        }
-        if s.starts_with('/') || s.starts_with("COM") {
-            return Ok(PortSpec::Path(PathBuf::from(s)));
-        }
-        Err(PortSpecError::Unknown(s.to_owned()))
-    }
 }
 
 /// Opens a real serial port by path or USB identity, at a baud rate, 8N1, no flow control.
