@@ -230,6 +230,41 @@ impl VoxelCamera {
         (u >= 0.0 && v >= 0.0 && u < self.width as f32 && v < self.height as f32).then_some((u as usize, v as usize))
     }
 
+    /// The pixels `[x0, x1) x [y0, y1)` that hold every footprint of a voxel inside the box of voxels
+    /// `lo..hi` (voxel indices, `hi` exclusive), clipped to the image (possibly empty); `None` when
+    /// that cannot be bounded this way: a corner is behind the camera, or the lens distorts (a
+    /// distorted box edge may bulge past its corners' bounding rectangle).
+    pub(crate) fn box_pixels(&self, lo: [u32; 3], hi: [u32; 3]) -> Option<[usize; 4]> {
+        if self.k1 != 0.0 || self.k2 != 0.0 {
+            return None;
+        }
+        let (mut u0, mut u1, mut v0, mut v1) = (f32::INFINITY, f32::NEG_INFINITY, f32::INFINITY, f32::NEG_INFINITY);
+        for corner in 0..8 {
+            let p = [0, 1, 2].map(|a| {
+                let i = if corner >> a & 1 == 1 { hi[a] } else { lo[a] };
+                self.origin[a] + i as f32 * self.size
+            });
+            let (z, u, w) = self.project(p);
+            if z.is_nan() || z <= 0.0 || !u.is_finite() || !w.is_finite() {
+                return None;
+            }
+            u0 = u0.min(u);
+            u1 = u1.max(u);
+            v0 = v0.min(w);
+            v1 = v1.max(w);
+        }
+        // A footprint is the pixels whose centres lie in its voxel's rectangle, or the pixel its
+        // centre falls in: all within one pixel of the box's rectangle.
+        let clip = |lo: f32, hi: f32, n: usize| {
+            let a = (lo.floor() - 1.0).clamp(0.0, n as f32) as usize;
+            let b = (hi.floor() + 2.0).clamp(0.0, n as f32) as usize;
+            (a, b.max(a))
+        };
+        let (x0, x1) = clip(u0, u1, self.width);
+        let (y0, y1) = clip(v0, v1, self.height);
+        Some([x0, x1, y0, y1])
+    }
+
     /// The footprint of voxel `v` (see the module docs); `None` when a corner is behind the camera or
     /// the footprint misses the image.
     pub(crate) fn footprint(&self, v: [u32; 3]) -> Option<Footprint> {
