@@ -74,6 +74,86 @@ impl Default for PhotoParams {
     }
 }
 
+impl PhotoParams {
+    /// These parameters with `threshold` derived from the measured noise of the data
+    /// ([`PhotoNoise::threshold`]) instead of a fixed number.
+    pub fn with_measured_noise(self, noise: &PhotoNoise) -> PhotoParams {
+        PhotoParams { threshold: noise.threshold(), ..self }
+    }
+}
+
+/// The measured noise of a photo data set (see [`super::voxel_coloring::measure_noise`]), 8-bit levels.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct PhotoNoise {
+    /// Image noise: the median over views of Immerkær's estimate of the standard deviation of the
+    /// pixel noise (RMS over channels), over pixels inside the masks.
+    pub image_sigma: f32,
+    /// Median over the start's seen surface voxels of their colour spread between views (the
+    /// statistic [`PhotoParams::threshold`] bounds).
+    pub spread_median: f32,
+    /// Median absolute deviation of those spreads from their median.
+    pub spread_mad: f32,
+    /// Surface voxels the spreads were measured on.
+    pub voxels: usize,
+}
+
+impl PhotoNoise {
+    /// Multiples of the spread's robust standard deviation (1.4826 MAD) above its median, and of the
+    /// image noise, that the derived threshold allows.
+    pub const K: f32 = 3.0;
+
+    /// The consistency threshold this noise calls for, 8-bit levels: the start's surface is mostly
+    /// on or near the true surface, so its spreads are mostly what view-to-view differences of
+    /// consistent voxels are (sensor noise, shading, sampling); a voxel counts as inconsistent
+    /// when its spread is an outlier of that distribution, `median + K * 1.4826 * MAD`, and never
+    /// below `K` times the image noise.
+    pub fn threshold(&self) -> f32 {
+        let robust = self.spread_median + Self::K * 1.4826 * self.spread_mad;
+        robust.max(Self::K * self.image_sigma).max(1.0)
+    }
+}
+
+/// Immerkær's fast estimate of the standard deviation of additive pixel noise (8-bit levels, RMS
+/// over channels) of one view: the mean absolute response of the 3x3 Laplacian-difference mask
+/// `[1 -2 1; -2 4 -2; 1 -2 1]` times `sqrt(pi/2) / 6`, over the pixels whose 3x3 neighbourhood is
+/// inside the mask (every interior pixel without one). `None` without such pixels.
+pub fn image_noise_sigma(view: &PhotoView<'_>) -> Option<f32> {
+    let (w, h) = view.image.dimensions();
+    let (w, h) = (w as usize, h as usize);
+    if w < 3 || h < 3 {
+        return None;
+    }
+    let img = view.image.as_raw();
+    let inside = |x: usize, y: usize| view.mask.is_none_or(|m| m.get(x as u32, y as u32));
+    let (sum, n) = (1..h - 1)
+        .into_par_iter()
+        .map(|y| {
+            let mut sum = [0f64; 3];
+            let mut n = 0u64;
+            for x in 1..w - 1 {
+                if !(inside(x - 1, y - 1) && inside(x + 1, y - 1) && inside(x - 1, y + 1) && inside(x + 1, y + 1)) {
+                    continue;
+                }
+                for (c, acc) in sum.iter_mut().enumerate() {
+                    let at = |dx: usize, dy: usize| img[3 * ((y + dy - 1) * w + x + dx - 1) + c] as i32;
+                    let r = at(0, 0) - 2 * at(1, 0) + at(2, 0) - 2 * at(0, 1) + 4 * at(1, 1) - 2 * at(2, 1) + at(0, 2)
+                        - 2 * at(1, 2)
+                        + at(2, 2);
+                    *acc += r.unsigned_abs() as f64;
+                }
+                n += 1;
+            }
+            (sum, n)
+        })
+        .reduce(|| ([0f64; 3], 0), |a, b| ([a.0[0] + b.0[0], a.0[1] + b.0[1], a.0[2] + b.0[2]], a.1 + b.1));
+    if n == 0 {
+        return None;
+    }
+    let k = (std::f64::consts::PI / 2.0).sqrt() / 6.0 / n as f64;
+    let var = sum.iter().map(|s| (s * k).powi(2)).sum::<f64>() / 3.0;
+    Some(var.sqrt() as f32)
+}
+
 /// Standard deviation (8-bit levels) below which a patch counts as untextured for the NCC test.
 pub const NCC_MIN_SIGMA: f32 = 6.0;
 
@@ -424,6 +504,37 @@ pub(crate) fn sample_view(
     } else {
         (count, sum.map(|s| s as f32 / count as f32))
     }
+}
+
+/// Width of the silhouette contour band of [`touches_contour`], pixels.
+pub const CONTOUR_BAND_PX: i64 = 2;
+
+/// Whether a pixel of footprint `fp` for which `visible(x, y)` holds lies on the view's silhouette
+/// contour: inside the mask with a pixel outside it within [`CONTOUR_BAND_PX`] along a row or
+/// column (the image border is no contour: the object may go on beyond it). Always `false` without
+/// a mask.
+///
+/// The carvers keep such voxels: the visual hull touches the object along its rims, so a voxel that
+/// a view sees on its silhouette's outline lies on the surface (up to the silhouettes' accuracy),
+/// and carving it would shrink that view's silhouette of the result below the hull's.
+pub(crate) fn touches_contour(view: &PhotoView<'_>, fp: &Footprint, visible: impl Fn(usize, usize) -> bool) -> bool {
+    let Some(m) = view.mask else { return false };
+    let (w, h) = (m.width(), m.height());
+    let outside = |x: i64, y: i64| x >= 0 && y >= 0 && x < w as i64 && y < h as i64 && !m.get(x as u32, y as u32);
+    for y in fp.y0..fp.y1 {
+        for x in fp.x0..fp.x1 {
+            if !visible(x, y) || !m.get(x as u32, y as u32) {
+                continue;
+            }
+            let (xi, yi) = (x as i64, y as i64);
+            for d in 1..=CONTOUR_BAND_PX {
+                if outside(xi - d, yi) || outside(xi + d, yi) || outside(xi, yi - d) || outside(xi, yi + d) {
+                    return true;
+                }
+            }
+        }
+    }
+    false
 }
 
 /// The colour of the pixel voxel `v`'s centre projects into, if `visible(x, y)` holds there and the

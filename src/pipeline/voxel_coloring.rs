@@ -51,8 +51,9 @@ use rayon::prelude::*;
 
 use super::occupancy::Occupancy;
 use super::photo_consistency::{
-    centre_sample, check_inputs, facing, is_consistent, ncc_pattern, normal_estimate, render_item_buffers, sample_view,
-    surface_colour, ItemBuffer, PhotoError, PhotoParams, PhotoView, ViewSample, VoxelCamera,
+    centre_sample, check_inputs, facing, image_noise_sigma, is_consistent, ncc_pattern, normal_estimate,
+    render_item_buffers, sample_view, surface_colour, touches_contour, ItemBuffer, PhotoError, PhotoNoise, PhotoParams,
+    PhotoView, ViewSample, VoxelCamera,
 };
 use crate::geometry::VoxelGrid;
 
@@ -229,6 +230,12 @@ pub fn carve_photo_surface(
             .par_iter()
             .enumerate()
             .filter_map(|(idx, &v)| {
+                let on_rim = cams.iter().zip(views).zip(&buffers).any(|((cam, view), buf)| {
+                    cam.footprint(v).is_some_and(|fp| touches_contour(view, &fp, |x, y| buf.get(x, y) == idx as u32))
+                });
+                if on_rim {
+                    return None;
+                }
                 let normal = normal_estimate(&occ, v);
                 let (samples, patterns) =
                     gather(&cams, views, &buffers, v, idx as u32, normal, params, params.min_ncc.is_some());
@@ -245,6 +252,7 @@ pub fn carve_photo_surface(
             dense.clear(v);
         }
     }
+    stats.carved -= restore_silhouettes(start, &mut dense, views);
     let occupancy = dense.to_occupancy(grid);
     let surface = colour_dense(&dense, &cams, views, params);
     stats.seconds = t.elapsed().as_secs_f64();
@@ -586,9 +594,15 @@ fn colouring_verdict(
     v: [u32; 3],
     params: &PhotoParams,
 ) -> Option<bool> {
-    let normal = normal_estimate(&|i, j, k| dense.get(i, j, k), v);
     let mut samples = Vec::new();
     let mut patterns = Vec::new();
+    let mut rim = false;
+    for ((cam, view), marks) in cams.iter().zip(views).zip(claimed) {
+        if let Some(fp) = cam.footprint(v) {
+            rim |= touches_contour(view, &fp, |x, y| !marks[y * cam.width + x]);
+        }
+    }
+    let normal = normal_estimate(&|i, j, k| dense.get(i, j, k), v);
     for ((cam, view), marks) in cams.iter().zip(views).zip(claimed) {
         let cos = facing(cam, cam.point(v, [0.0; 3]), normal);
         if cos < params.min_cos {
@@ -609,7 +623,8 @@ fn colouring_verdict(
     if samples.is_empty() {
         None
     } else {
-        Some(is_consistent(&samples, &patterns, params))
+        // A voxel on a silhouette's outline is kept (and claims its pixels) whatever its colours.
+        Some(rim || is_consistent(&samples, &patterns, params))
     }
 }
 
@@ -632,6 +647,119 @@ pub fn color_voxels(
     params: &PhotoParams,
 ) -> Result<PhotoModel, PhotoError> {
     layered::color(start, views, params)
+}
+
+/// One voxel colouring sweep of [`color_voxels_sweeps`]: a direction and the views that satisfy the
+/// ordinal visibility constraint along it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct OrdinalSweep {
+    /// Sweep direction, unit vector, grid frame.
+    pub direction: [f64; 3],
+    /// Indices of the views in front of the working volume along it.
+    pub views: Vec<usize>,
+}
+
+/// Sweeps that let voxel colouring use views all around the object: candidate directions are the
+/// directions from each camera centre to the grid's centre; along a direction `d` the views whose
+/// centre `c` has `d·c` below the volume's smallest `d·x` satisfy the ordinal visibility constraint.
+/// Directions are chosen greedily, each adding the most views no chosen sweep has (ties: the
+/// larger set), until every view that some direction admits is in a sweep; sweeps with fewer than
+/// `min_views` views are left out.
+pub fn ordinal_sweeps(grid: &VoxelGrid, views: &[PhotoView<'_>], min_views: usize) -> Vec<OrdinalSweep> {
+    let b = grid.bbox();
+    let centre = nalgebra::Vector3::from([0, 1, 2].map(|a| 0.5 * (b.min[a] + b.max[a])));
+    let corners = b.corners();
+    let candidates: Vec<(nalgebra::Vector3<f64>, Vec<usize>)> = views
+        .iter()
+        .filter_map(|v| (centre - v.camera.centre()).try_normalize(1e-12))
+        .map(|d| {
+            let near = corners.iter().map(|c| d.dot(c)).fold(f64::INFINITY, f64::min);
+            let admitted = (0..views.len()).filter(|&n| d.dot(&views[n].camera.centre()) < near).collect();
+            (d, admitted)
+        })
+        .filter(|(_, s): &(_, Vec<usize>)| s.len() >= min_views)
+        .collect();
+    let mut covered = vec![false; views.len()];
+    let mut out = Vec::new();
+    loop {
+        let best = candidates
+            .iter()
+            .map(|(d, s)| (s.iter().filter(|&&n| !covered[n]).count(), s.len(), d, s))
+            .filter(|c| c.0 > 0)
+            .max_by_key(|c| (c.0, c.1));
+        let Some((_, _, d, s)) = best else { break };
+        for &n in s {
+            covered[n] = true;
+        }
+        out.push(OrdinalSweep { direction: [d.x, d.y, d.z], views: s.clone() });
+    }
+    out
+}
+
+/// Voxel colouring with views all around: one [`color_voxels`] sweep per [`ordinal_sweeps`] entry,
+/// each from the previous one's result with the views that satisfy the ordinal visibility
+/// constraint along its direction; the result is coloured from every view. Counters add up over
+/// the sweeps (`sweeps` counts them). [`PhotoError::NoOrdinalOrder`] when no direction admits
+/// `min_views` views.
+pub fn color_voxels_sweeps(
+    start: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+) -> Result<PhotoModel, PhotoError> {
+    let t = Instant::now();
+    let grid = *start.grid();
+    check_inputs(&grid, views, params)?;
+    let sweeps = ordinal_sweeps(&grid, views, params.min_views);
+    if sweeps.is_empty() {
+        let d = ordinal_direction(&grid, views).err();
+        return Err(d.unwrap_or(PhotoError::NoOrdinalOrder { view: 0, direction: [0.0; 3] }));
+    }
+    let mut occupancy = start.clone();
+    let mut stats = PhotoStats::default();
+    for sweep in &sweeps {
+        let used: Vec<PhotoView<'_>> = sweep.views.iter().map(|&n| views[n]).collect();
+        let m = layered::color_along(&occupancy, &used, params, sweep.direction)?;
+        tracing::debug!(direction = ?sweep.direction, views = used.len(), carved = m.stats.carved, "voxel colouring sweep");
+        stats.iterations += m.stats.iterations;
+        stats.visits += m.stats.visits;
+        stats.carved += m.stats.carved;
+        stats.sweeps += 1;
+        occupancy = m.occupancy;
+    }
+    let mut dense = Dense::from(&occupancy);
+    stats.carved -= restore_silhouettes(start, &mut dense, views);
+    let occupancy = dense.to_occupancy(grid);
+    let surface = colour_surface(&occupancy, views, params)?;
+    stats.seconds = t.elapsed().as_secs_f64();
+    Ok(PhotoModel { occupancy, surface, stats })
+}
+
+/// The measured noise of `views` for photo-consistency from `start` (the visual hull): the image
+/// noise of each view ([`super::photo_consistency::image_noise_sigma`]) and the distribution of the
+/// colour spread over the start's surface voxels that `params.min_views` views see (item-buffer
+/// visibility, views facing below `params.min_cos` left out, as the carvers judge). Use it through
+/// [`PhotoParams::with_measured_noise`].
+pub fn measure_noise(
+    start: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+) -> Result<PhotoNoise, PhotoError> {
+    check_inputs(start.grid(), views, params)?;
+    let median = |x: &mut Vec<f32>| {
+        if x.is_empty() {
+            return 0.0;
+        }
+        x.sort_unstable_by(f32::total_cmp);
+        x[x.len() / 2]
+    };
+    let mut sigmas: Vec<f32> = views.iter().filter_map(image_noise_sigma).collect();
+    let image_sigma = median(&mut sigmas);
+    let mut spreads = incremental::surface_spreads(start, views, params);
+    let voxels = spreads.len();
+    let spread_median = median(&mut spreads);
+    let mut dev: Vec<f32> = spreads.iter().map(|s| (s - spread_median).abs()).collect();
+    let spread_mad = median(&mut dev);
+    Ok(PhotoNoise { image_sigma, spread_median, spread_mad, voxels })
 }
 
 /// Voxel colouring with the ordinal visibility constraint from `start`, visiting every voxel of the
@@ -680,10 +808,78 @@ pub fn color_voxels_every_voxel(
         }
         start_idx = end;
     }
+    stats.carved -= restore_silhouettes(start, &mut dense, views);
     let occupancy = dense.to_occupancy(grid);
     let surface = colour_dense(&dense, &cams, views, params);
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats })
+}
+
+/// Give back carved voxels of `start` where the result's silhouette lost pixels: in each view with
+/// a mask, the pixels inside it that the start's re-projection covers and the result's
+/// ([`super::space_carving::reproject`]) does not; every carved voxel whose footprint, slightly
+/// grown, meets such a pixel is restored, until no pixel is lost (at most four rounds). Since the
+/// start's coverage of those pixels came from its boundary voxels, which are either still there or
+/// restored, the result's silhouettes then cover every in-mask pixel the start's did, and cover
+/// nothing the start's did not: its re-projection IoU is at least the start's. Returns the voxels
+/// restored.
+fn restore_silhouettes(start: &Occupancy, dense: &mut Dense, views: &[PhotoView<'_>]) -> u64 {
+    use super::space_carving::reproject;
+    let grid = *start.grid();
+    let masked: Vec<&PhotoView<'_>> = views.iter().filter(|v| v.mask.is_some()).collect();
+    if masked.is_empty() {
+        return 0;
+    }
+    let cams: Vec<VoxelCamera> = masked.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let start_boundary = start.boundary_voxels();
+    let start_cover: Vec<super::silhouette::Mask> =
+        masked.par_iter().map(|v| reproject(start, &start_boundary, &v.camera)).collect();
+    let mut restored = 0u64;
+    for _ in 0..4 {
+        let result = dense.to_occupancy(grid);
+        let boundary = result.boundary_voxels();
+        let lost: Vec<Vec<bool>> = masked
+            .par_iter()
+            .zip(&start_cover)
+            .map(|(v, cover)| {
+                let now = reproject(&result, &boundary, &v.camera);
+                let m = v.mask.expect("masked views only");
+                let (w, h) = (v.camera.width, v.camera.height);
+                (0..h)
+                    .flat_map(|y| (0..w).map(move |x| (x, y)))
+                    .map(|(x, y)| m.get(x, y) && cover.get(x, y) && !now.get(x, y))
+                    .collect()
+            })
+            .collect();
+        if lost.iter().all(|l| !l.iter().any(|&b| b)) {
+            break;
+        }
+        let mut carved: Vec<[u32; 3]> = Vec::new();
+        start.for_each_occupied(|i, j, k| {
+            if !dense.get(i as i64, j as i64, k as i64) {
+                carved.push([i as u32, j as u32, k as u32]);
+            }
+        });
+        let back: Vec<[u32; 3]> = carved
+            .par_iter()
+            .copied()
+            .filter(|&v| {
+                cams.iter().zip(&lost).any(|(cam, l)| {
+                    cam.footprint_of_cube(v, 0.6)
+                        .is_some_and(|fp| (fp.y0..fp.y1).any(|y| (fp.x0..fp.x1).any(|x| l[y * cam.width + x])))
+                })
+            })
+            .collect();
+        if back.is_empty() {
+            break;
+        }
+        for v in &back {
+            let i = dense.index(*v);
+            dense.bits[i] |= OCCUPIED;
+        }
+        restored += back.len() as u64;
+    }
+    restored
 }
 
 fn colour_dense(dense: &Dense, cams: &[VoxelCamera], views: &[PhotoView<'_>], params: &PhotoParams) -> ColouredSurface {

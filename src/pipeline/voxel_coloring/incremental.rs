@@ -19,12 +19,12 @@
 
 use rayon::prelude::*;
 
-use super::{ColouredSurface, Dense, PhotoModel, PhotoStats, OCCUPIED};
+use super::{restore_silhouettes, ColouredSurface, Dense, PhotoModel, PhotoStats, OCCUPIED};
 use crate::geometry::VoxelGrid;
 use crate::pipeline::occupancy::Occupancy;
 use crate::pipeline::photo_consistency::{
-    centre_sample, check_inputs, facing, is_consistent, ncc_pattern, normal_estimate, sample_view, surface_colour,
-    Footprint, PhotoError, PhotoParams, PhotoView, ViewSample, VoxelCamera,
+    centre_sample, check_inputs, colour_spread, facing, is_consistent, ncc_pattern, normal_estimate, sample_view,
+    surface_colour, touches_contour, Footprint, PhotoError, PhotoParams, PhotoView, ViewSample, VoxelCamera,
 };
 
 /// Bit of [`Dense::bits`]: the voxel has a slot (it is, or was, on the surface).
@@ -208,6 +208,14 @@ fn gather(
     (samples, patterns)
 }
 
+/// Whether slot `s` touches a view's silhouette contour on pixels it owns (see
+/// `photo_consistency::touches_contour`): such voxels are kept.
+fn on_rim(views: &[PhotoView<'_>], states: &[ViewState], s: u32) -> bool {
+    views.iter().zip(states).any(|(view, st)| {
+        st.fps[s as usize].get().is_some_and(|fp| touches_contour(view, &fp, |x, y| st.id[y * st.width + x] == s))
+    })
+}
+
 /// The carver's state over one run.
 struct Carver<'a> {
     cams: Vec<VoxelCamera>,
@@ -270,6 +278,9 @@ impl<'a> Carver<'a> {
 
     fn consistent(&self, s: u32, params: &PhotoParams) -> bool {
         let v = self.voxels[s as usize];
+        if on_rim(&self.views, &self.states, s) {
+            return true;
+        }
         let (samples, patterns) = gather(&self.cams, self.views, &self.states, v, s, self.normal(v), params, false);
         is_consistent(&samples, &patterns, params)
     }
@@ -356,6 +367,20 @@ impl<'a> Carver<'a> {
     }
 }
 
+/// The colour spread between views (see `photo_consistency::colour_spread`) of every surface voxel
+/// of `start` that at least `params.min_views` views see, under item buffers of that surface.
+pub(super) fn surface_spreads(start: &Occupancy, views: &[PhotoView<'_>], params: &PhotoParams) -> Vec<f32> {
+    let c = Carver::new(start, views);
+    (0..c.voxels.len() as u32)
+        .into_par_iter()
+        .filter_map(|s| {
+            let v = c.voxels[s as usize];
+            let (samples, _) = gather(&c.cams, c.views, &c.states, v, s, c.normal(v), params, false);
+            (samples.len() >= params.min_views).then(|| colour_spread(&samples))
+        })
+        .collect()
+}
+
 /// See [`super::carve_photo`].
 pub(super) fn carve(
     start: &Occupancy,
@@ -387,8 +412,11 @@ pub(super) fn carve(
         stats.carved += carved.len() as u64;
         todo = c.carve(&carved);
     }
+    let restored = restore_silhouettes(start, &mut c.dense, views);
+    stats.carved -= restored;
     let occupancy = c.dense.to_occupancy(grid);
-    let surface = c.coloured_surface(params);
+    let surface =
+        if restored == 0 { c.coloured_surface(params) } else { super::colour_dense(&c.dense, &c.cams, views, params) };
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats })
 }

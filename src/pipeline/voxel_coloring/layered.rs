@@ -15,7 +15,9 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::{claim, colour_dense, colouring_verdict, ordinal_direction, Dense, PhotoModel, PhotoStats};
+use super::{
+    claim, colour_dense, colouring_verdict, ordinal_direction, restore_silhouettes, Dense, PhotoModel, PhotoStats,
+};
 use crate::pipeline::occupancy::Occupancy;
 use crate::pipeline::photo_consistency::{check_inputs, PhotoError, PhotoParams, PhotoView, VoxelCamera};
 
@@ -41,10 +43,22 @@ pub(super) fn color(
     views: &[PhotoView<'_>],
     params: &PhotoParams,
 ) -> Result<PhotoModel, PhotoError> {
+    check_inputs(start.grid(), views, params)?;
+    let d = ordinal_direction(start.grid(), views)?;
+    color_along(start, views, params, d)
+}
+
+/// Voxel colouring from `start` in layers of increasing `d·x` (`d` a unit vector, grid frame, for
+/// which `views` satisfy the ordinal visibility constraint; inputs already checked).
+pub(super) fn color_along(
+    start: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+    d: [f64; 3],
+) -> Result<PhotoModel, PhotoError> {
     let t = Instant::now();
     let grid = *start.grid();
-    check_inputs(&grid, views, params)?;
-    let d = ordinal_direction(&grid, views)?.map(|x| x as f32);
+    let d = d.map(|x| x as f32);
     let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
     let mut dense = Dense::from(start);
     let key = |v: [u32; 3]| (d[0] * v[0] as f32 + d[1] * v[1] as f32 + d[2] * v[2] as f32).floor() as i32;
@@ -131,6 +145,7 @@ pub(super) fn color(
             }
         }
     }
+    stats.carved -= restore_silhouettes(start, &mut dense, views);
     let occupancy = dense.to_occupancy(grid);
     let surface = colour_dense(&dense, &cams, views, params);
     stats.seconds = t.elapsed().as_secs_f64();
