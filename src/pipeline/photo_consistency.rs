@@ -712,6 +712,41 @@ mod tests {
     }
 
     #[test]
+    fn immerkaer_estimate_recovers_the_added_noise_and_ignores_smooth_shading() {
+        use crate::geometry::{CameraModel, Intrinsics, Pose};
+        use nalgebra::Vector3;
+        let camera = CameraModel {
+            width: 200,
+            height: 150,
+            intrinsics: Intrinsics { fx: 200.0, fy: 200.0, cx: 100.0, cy: 75.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+            pose: Pose::look_at(Vector3::new(0.0, -1.0, 0.0), Vector3::zeros(), Vector3::z()),
+        };
+        // A linear ramp (the mask's Laplacian cancels it) plus uniform noise of +-6 levels (sd 3.46).
+        let mut seed = 12345u64;
+        let mut noise = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 33) % 13) as i32 - 6
+        };
+        let img = RgbImage::from_fn(200, 150, |x, y| {
+            let base = 60 + x as i32 / 2 + y as i32 / 3;
+            image::Rgb([0, 1, 2].map(|_| (base + noise()).clamp(0, 255) as u8))
+        });
+        let sd = (((13 * 13 - 1) as f32) / 12.0).sqrt();
+        let view = PhotoView { camera, image: &img, mask: None };
+        let sigma = image_noise_sigma(&view).expect("interior pixels");
+        assert!((sigma - sd).abs() < 0.15 * sd, "estimated {sigma}, added {sd}");
+        let clean = RgbImage::from_fn(200, 150, |x, y| image::Rgb([(60 + x / 2 + y / 3) as u8; 3]));
+        let clean_view = PhotoView { image: &clean, ..view };
+        assert!(image_noise_sigma(&clean_view).expect("interior pixels") < 0.5);
+        // The derived threshold follows the spread's outliers and never falls below K x image noise.
+        let n = PhotoNoise { image_sigma: sigma, spread_median: 9.0, spread_mad: 2.0, voxels: 100 };
+        assert!((n.threshold() - (9.0 + PhotoNoise::K * 1.4826 * 2.0)).abs() < 1e-4);
+        let quiet = PhotoNoise { spread_median: 1.0, spread_mad: 0.0, ..n };
+        assert!((quiet.threshold() - PhotoNoise::K * sigma).abs() < 1e-4);
+        assert_eq!(PhotoParams::default().with_measured_noise(&n).threshold, n.threshold());
+    }
+
+    #[test]
     fn surface_colour_averages_centre_pixels_and_falls_back_to_footprints() {
         let with_centre = |c: [u8; 3]| ViewSample { centre: Some(c), ..s(3, [0.0; 3], 0.9) };
         // Centre pixels win over footprint means (which blur edges).
