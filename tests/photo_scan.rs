@@ -73,8 +73,7 @@ fn space_carving_photo_on_the_shipped_rig() {
     assert!(num(&report, "photo", "visits") < iterations * num(&report, "visual_hull", "voxels"));
 }
 
-/// Voxel colouring on a 90-degree arc: hull voxels visited at most once (bricks hidden behind kept
-/// surface are never visited).
+/// Voxel colouring on a 90-degree arc: hull voxels visited at most once.
 #[test]
 #[cfg_attr(debug_assertions, ignore = "heavy: run with --release")]
 fn voxel_coloring_on_the_shipped_rig() {
@@ -83,6 +82,8 @@ fn voxel_coloring_on_the_shipped_rig() {
     let report = run_scan(&repo("config/rigs/voxel-coloring.toml"), &out);
     let (iou, hull, _, _) = check(&report, &out, "voxel-coloring");
     assert!(iou > hull, "IoU {iou} not above the visual hull's {hull}");
-    assert!(num(&report, "photo", "visits") < num(&report, "visual_hull", "voxels"));
+    // At most once each; bricks are dropped unvisited only for cameras without lens distortion,
+    // which the shipped rig's cameras have, so here every hull voxel is visited.
+    assert!(num(&report, "photo", "visits") <= num(&report, "visual_hull", "voxels"));
     assert!(num(&report, "photo", "views") < 36.0);
 }

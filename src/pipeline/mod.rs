@@ -39,7 +39,7 @@ pub use cloud::{
 pub use coloring::{color_vertices, ColorView};
 pub use depth_fusion::{DepthFusionError, FusionParams, IntegrateStats, Tsdf};
 pub use export::ExportError;
-pub use mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
+pub use mesh::{extract_surface, keep_main_component, MeshCleanStats, MeshError, MeshParams, TriangleMesh};
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
 pub use photo_consistency::{image_noise_sigma, ItemBuffer, PhotoError, PhotoNoise, PhotoParams, PhotoView};
 pub use shadow_carving::{carve_shadows, ShadowCarveError, ShadowCarveParams, ShadowCarveStats, ShadowView};
