@@ -16,7 +16,7 @@ use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
 
-use image::{GrayImage, ImageBuffer, Luma, RgbImage};
+use image::{ImageBuffer, Luma, RgbImage};
 use scanrig::geometry::{Aabb, CameraModel, Intrinsics, Pose, Vector3, VoxelGrid};
 use scanrig::pipeline::laser::{detect_stripe, triangulate_peaks, Plane, StripeParams};
 use scanrig::pipeline::structured_light::phase::{PhaseDecodeParams, PhaseShiftPatterns, Unwrapping};

@@ -154,8 +154,8 @@ impl ViewState {
         }
         if !reset.is_empty() {
             let first_added = added.first().map_or(live.len(), |&s| s as usize);
-            for s in 0..first_added {
-                if live[s] && self.meets_flagged(s) {
+            for (s, &alive) in live.iter().enumerate().take(first_added) {
+                if alive && self.meets_flagged(s) {
                     self.draw(s as u32, lins, false, &mut marks);
                 }
             }
@@ -173,6 +173,7 @@ impl ViewState {
     }
 }
 
+#[allow(clippy::too_many_arguments)] // one voxel's visit, kept as plain arguments
 /// Per-view samples of slot `s` (voxel `v`) under the item buffers, views facing below `min_cos`
 /// dropped; centre pixels when `colour`, NCC patterns when the parameters ask for them.
 fn gather(
@@ -278,7 +279,7 @@ impl<'a> Carver<'a> {
 
     fn consistent(&self, s: u32, params: &PhotoParams) -> bool {
         let v = self.voxels[s as usize];
-        if on_rim(&self.views, &self.states, s) {
+        if on_rim(self.views, &self.states, s) {
             return true;
         }
         let (samples, patterns) = gather(&self.cams, self.views, &self.states, v, s, self.normal(v), params, false);
