@@ -37,7 +37,7 @@ def fmt_time(s):
         return "-"
     if s >= 1.0:
         return f"{s:.2f} s"
-    if s >= 1e-3:
+    if s >= 0.9995e-3:
         return f"{s * 1e3:.1f} ms"
     return f"{s * 1e6:.0f} us"
 
