@@ -149,8 +149,12 @@ fn bench(c: &mut Criterion) {
             let diff = differing(&m.occupancy, &b.occupancy);
             println!(
                 "space-carving-photo baseline (multi-sweep, before) {n}^3, 36 views: {base:.2} s, {} iterations \
-                 ({} sweeps), {} visits, {} carved; voxels differing from ours {diff}",
-                b.stats.iterations, b.stats.sweeps, b.stats.visits, b.stats.carved
+                 ({} sweeps), {} visits, {} carved; voxels differing from ours {diff}; IoU with the true sphere {:.4}",
+                b.stats.iterations,
+                b.stats.sweeps,
+                b.stats.visits,
+                b.stats.carved,
+                iou(&b.occupancy)
             );
             perf_line("space-carving-photo", &format!("{n}^3, 36 views 640x480"), ours, "multi-sweep (before)", base);
         }
