@@ -129,11 +129,23 @@ impl Tsdf {
             .enumerate()
             .map(|(k, (values, weights))| {
                 let (mut updated, mut near) = (0u64, 0u64);
+                // Camera coordinates are affine in the voxel index: one step along x per voxel.
+                let step = camera.pose.rotation.column(0) * grid.voxel_size;
+                let intr = &camera.intrinsics;
                 for j in 0..grid.dims[1] {
+                    let row = camera.pose.apply(&grid.centre(0, j, k));
                     for i in 0..grid.dims[0] {
-                        let p = grid.centre(i, j, k);
-                        let z = camera.pose.apply(&p).z;
-                        let Some((u, v)) = camera.pixel_of(&p) else { continue };
+                        let c = row + step * i as f64;
+                        if c.z <= 0.0 {
+                            continue;
+                        }
+                        let z = c.z;
+                        let q = intr.normalised_to_pixel(c.x / c.z, c.y / c.z);
+                        let (uf, vf) = (q.x.floor(), q.y.floor());
+                        if !(uf >= 0.0 && vf >= 0.0 && uf < w as f64 && vf < h as f64) {
+                            continue;
+                        }
+                        let (u, v) = (uf as u32, vf as u32);
                         let d = depth_m[(v * w + u) as usize];
                         let sample = if d > 0.0 && d.is_finite() {
                             let sdf = d - z as f32;

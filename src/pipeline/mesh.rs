@@ -323,6 +323,98 @@ fn box_pass(src: &[u32], ext: [usize; 3], axis: usize, w: usize) -> Vec<u32> {
     out
 }
 
+/// What [`keep_main_component`] did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct MeshCleanStats {
+    /// Connected components of the input (triangles sharing vertices).
+    pub components: usize,
+    /// Components removed that enclose positive volume: parts floating apart from the main one.
+    pub floating_parts_removed: usize,
+    /// Components removed that enclose negative volume: the inner walls of internal cavities.
+    pub cavities_removed: usize,
+    /// Triangles removed in all.
+    pub triangles_removed: usize,
+}
+
+/// The mesh reduced to its main component: of the connected components (triangles sharing a
+/// vertex), the one enclosing the largest volume (divergence theorem, outward normals) is kept;
+/// every other one is dropped and counted, as a floating part when it encloses positive volume, as
+/// an internal cavity when negative (a void's wall faces into the void). On a closed, consistently
+/// oriented mesh such as [`extract_surface`]'s, the result is one closed component without
+/// cavities. Vertices keep their order (unused ones are dropped), as do colours.
+pub fn keep_main_component(mesh: &TriangleMesh) -> (TriangleMesh, MeshCleanStats) {
+    let n = mesh.vertices.len();
+    let mut parent: Vec<u32> = (0..n as u32).collect();
+    fn find(parent: &mut [u32], mut x: u32) -> u32 {
+        while parent[x as usize] != x {
+            let up = parent[parent[x as usize] as usize];
+            parent[x as usize] = up;
+            x = up;
+        }
+        x
+    }
+    let valid = |t: &[u32; 3]| t.iter().all(|&i| (i as usize) < n);
+    for t in mesh.triangles.iter().filter(|t| valid(t)) {
+        let a = find(&mut parent, t[0]);
+        for &v in &t[1..] {
+            let b = find(&mut parent, v);
+            if a != b {
+                parent[b as usize] = a;
+            }
+        }
+    }
+    // Component of each triangle and each component's enclosed volume.
+    let mut volume: HashMap<u32, f64> = HashMap::new();
+    let mut comp = Vec::with_capacity(mesh.triangles.len());
+    for t in &mesh.triangles {
+        if !valid(t) {
+            comp.push(u32::MAX);
+            continue;
+        }
+        let c = find(&mut parent, t[0]);
+        let [a, b, d] = t.map(|i| mesh.vertices[i as usize].map(f64::from));
+        let v = (a[0] * (b[1] * d[2] - b[2] * d[1]) - a[1] * (b[0] * d[2] - b[2] * d[0])
+            + a[2] * (b[0] * d[1] - b[1] * d[0]))
+            / 6.0;
+        *volume.entry(c).or_insert(0.0) += v;
+        comp.push(c);
+    }
+    let mut stats = MeshCleanStats { components: volume.len(), ..MeshCleanStats::default() };
+    let Some((&main, _)) = volume.iter().max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(a.0))) else {
+        return (TriangleMesh { colors: mesh.colors.clone(), ..TriangleMesh::default() }, stats);
+    };
+    for (&c, &v) in &volume {
+        if c != main {
+            if v >= 0.0 {
+                stats.floating_parts_removed += 1;
+            } else {
+                stats.cavities_removed += 1;
+            }
+        }
+    }
+    let mut remap = vec![u32::MAX; n];
+    let mut out = TriangleMesh::default();
+    let mut colors = mesh.colors.as_ref().map(|_| Vec::new());
+    for (t, &c) in mesh.triangles.iter().zip(&comp) {
+        if c != main {
+            stats.triangles_removed += 1;
+            continue;
+        }
+        out.triangles.push(t.map(|i| {
+            if remap[i as usize] == u32::MAX {
+                remap[i as usize] = out.vertices.len() as u32;
+                out.vertices.push(mesh.vertices[i as usize]);
+                if let (Some(dst), Some(src)) = (colors.as_mut(), mesh.colors.as_ref()) {
+                    dst.push(src.get(i as usize).copied().unwrap_or([128, 128, 128]));
+                }
+            }
+            remap[i as usize]
+        }));
+    }
+    out.colors = colors;
+    (out, stats)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -358,6 +450,30 @@ mod tests {
         let full = extract_surface(&Occupancy::full(g), &MeshParams::default()).expect("mesh");
         assert_eq!(full.open_or_misoriented_edges(), 0);
         assert!(extract_surface(&occ, &MeshParams { smooth_radius: 99 }).is_err());
+    }
+
+    #[test]
+    fn main_component_drops_floating_parts_and_cavities() {
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [0.032; 3] }, 32);
+        // A block with an internal void, and a small separate cube beside it.
+        let occ = Occupancy::from_index_fn(grid, |i, j, k| {
+            let block = (2..20).contains(&i) && (2..20).contains(&j) && (2..20).contains(&k);
+            let void = (8..12).contains(&i) && (8..12).contains(&j) && (8..12).contains(&k);
+            let cube = (25..29).contains(&i) && (25..29).contains(&j) && (25..29).contains(&k);
+            (block && !void) || cube
+        });
+        let mesh = extract_surface(&occ, &MeshParams::default()).expect("mesh");
+        let (clean, stats) = keep_main_component(&mesh);
+        assert_eq!(stats.components, 3);
+        assert_eq!((stats.floating_parts_removed, stats.cavities_removed), (1, 1));
+        assert_eq!(stats.triangles_removed, mesh.triangles.len() - clean.triangles.len());
+        assert_eq!(clean.open_or_misoriented_edges(), 0);
+        let block = (18.0f64 * 0.001).powi(3);
+        let v = clean.signed_volume();
+        assert!((v - block).abs() < 0.05 * block, "volume {v} vs the block's {block}");
+        assert!(clean.vertices.len() < mesh.vertices.len());
+        let (again, s2) = keep_main_component(&clean);
+        assert_eq!((s2.components, s2.triangles_removed, again.triangles.len()), (1, 0, clean.triangles.len()));
     }
 
     #[test]

@@ -39,15 +39,16 @@ pub use cloud::{
 pub use coloring::{color_vertices, ColorView};
 pub use depth_fusion::{DepthFusionError, FusionParams, IntegrateStats, Tsdf};
 pub use export::ExportError;
-pub use mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
+pub use mesh::{extract_surface, keep_main_component, MeshCleanStats, MeshError, MeshParams, TriangleMesh};
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
-pub use photo_consistency::{ItemBuffer, PhotoError, PhotoParams, PhotoView};
+pub use photo_consistency::{image_noise_sigma, ItemBuffer, PhotoError, PhotoNoise, PhotoParams, PhotoView};
 pub use shadow_carving::{carve_shadows, ShadowCarveError, ShadowCarveParams, ShadowCarveStats, ShadowView};
 pub use shadows::{detect_shadows, ShadowError, ShadowMaps, ShadowParams};
 pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
 pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
 pub use voxel_coloring::{
-    carve_photo, color_voxels, colour_surface, reprojection_error, ColouredSurface, PhotoModel, PhotoStats,
+    carve_photo, color_voxels, color_voxels_sweeps, colour_surface, measure_noise, ordinal_sweeps, reprojection_error,
+    ColouredSurface, OrdinalSweep, PhotoModel, PhotoStats,
 };
 
 /// Any error of the reconstruction layer, for callers that handle them alike (each keeps its cause).

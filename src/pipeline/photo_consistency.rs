@@ -74,6 +74,86 @@ impl Default for PhotoParams {
     }
 }
 
+impl PhotoParams {
+    /// These parameters with `threshold` derived from the measured noise of the data
+    /// ([`PhotoNoise::threshold`]) instead of a fixed number.
+    pub fn with_measured_noise(self, noise: &PhotoNoise) -> PhotoParams {
+        PhotoParams { threshold: noise.threshold(), ..self }
+    }
+}
+
+/// The measured noise of a photo data set (see [`super::voxel_coloring::measure_noise`]), 8-bit levels.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct PhotoNoise {
+    /// Image noise: the median over views of Immerkær's estimate of the standard deviation of the
+    /// pixel noise (RMS over channels), over pixels inside the masks.
+    pub image_sigma: f32,
+    /// Median over the start's seen surface voxels of their colour spread between views (the
+    /// statistic [`PhotoParams::threshold`] bounds).
+    pub spread_median: f32,
+    /// Median absolute deviation of those spreads from their median.
+    pub spread_mad: f32,
+    /// Surface voxels the spreads were measured on.
+    pub voxels: usize,
+}
+
+impl PhotoNoise {
+    /// Multiples of the spread's robust standard deviation (1.4826 MAD) above its median, and of the
+    /// image noise, that the derived threshold allows.
+    pub const K: f32 = 3.0;
+
+    /// The consistency threshold this noise calls for, 8-bit levels: the start's surface is mostly
+    /// on or near the true surface, so its spreads are mostly what view-to-view differences of
+    /// consistent voxels are (sensor noise, shading, sampling); a voxel counts as inconsistent
+    /// when its spread is an outlier of that distribution, `median + K * 1.4826 * MAD`, and never
+    /// below `K` times the image noise.
+    pub fn threshold(&self) -> f32 {
+        let robust = self.spread_median + Self::K * 1.4826 * self.spread_mad;
+        robust.max(Self::K * self.image_sigma).max(1.0)
+    }
+}
+
+/// Immerkær's fast estimate of the standard deviation of additive pixel noise (8-bit levels, RMS
+/// over channels) of one view: the mean absolute response of the 3x3 Laplacian-difference mask
+/// `[1 -2 1; -2 4 -2; 1 -2 1]` times `sqrt(pi/2) / 6`, over the pixels whose 3x3 neighbourhood is
+/// inside the mask (every interior pixel without one). `None` without such pixels.
+pub fn image_noise_sigma(view: &PhotoView<'_>) -> Option<f32> {
+    let (w, h) = view.image.dimensions();
+    let (w, h) = (w as usize, h as usize);
+    if w < 3 || h < 3 {
+        return None;
+    }
+    let img = view.image.as_raw();
+    let inside = |x: usize, y: usize| view.mask.is_none_or(|m| m.get(x as u32, y as u32));
+    let (sum, n) = (1..h - 1)
+        .into_par_iter()
+        .map(|y| {
+            let mut sum = [0f64; 3];
+            let mut n = 0u64;
+            for x in 1..w - 1 {
+                if !(inside(x - 1, y - 1) && inside(x + 1, y - 1) && inside(x - 1, y + 1) && inside(x + 1, y + 1)) {
+                    continue;
+                }
+                for (c, acc) in sum.iter_mut().enumerate() {
+                    let at = |dx: usize, dy: usize| img[3 * ((y + dy - 1) * w + x + dx - 1) + c] as i32;
+                    let r = at(0, 0) - 2 * at(1, 0) + at(2, 0) - 2 * at(0, 1) + 4 * at(1, 1) - 2 * at(2, 1) + at(0, 2)
+                        - 2 * at(1, 2)
+                        + at(2, 2);
+                    *acc += r.unsigned_abs() as f64;
+                }
+                n += 1;
+            }
+            (sum, n)
+        })
+        .reduce(|| ([0f64; 3], 0), |a, b| ([a.0[0] + b.0[0], a.0[1] + b.0[1], a.0[2] + b.0[2]], a.1 + b.1));
+    if n == 0 {
+        return None;
+    }
+    let k = (std::f64::consts::PI / 2.0).sqrt() / 6.0 / n as f64;
+    let var = sum.iter().map(|s| (s * k).powi(2)).sum::<f64>() / 3.0;
+    Some(var.sqrt() as f32)
+}
+
 /// Standard deviation (8-bit levels) below which a patch counts as untextured for the NCC test.
 pub const NCC_MIN_SIGMA: f32 = 6.0;
 
@@ -228,6 +308,41 @@ impl VoxelCamera {
     #[inline]
     pub(crate) fn pixel(&self, u: f32, v: f32) -> Option<(usize, usize)> {
         (u >= 0.0 && v >= 0.0 && u < self.width as f32 && v < self.height as f32).then_some((u as usize, v as usize))
+    }
+
+    /// The pixels `[x0, x1) x [y0, y1)` that hold every footprint of a voxel inside the box of voxels
+    /// `lo..hi` (voxel indices, `hi` exclusive), clipped to the image (possibly empty); `None` when
+    /// that cannot be bounded this way: a corner is behind the camera, or the lens distorts (a
+    /// distorted box edge may bulge past its corners' bounding rectangle).
+    pub(crate) fn box_pixels(&self, lo: [u32; 3], hi: [u32; 3]) -> Option<[usize; 4]> {
+        if self.k1 != 0.0 || self.k2 != 0.0 {
+            return None;
+        }
+        let (mut u0, mut u1, mut v0, mut v1) = (f32::INFINITY, f32::NEG_INFINITY, f32::INFINITY, f32::NEG_INFINITY);
+        for corner in 0..8 {
+            let p = [0, 1, 2].map(|a| {
+                let i = if corner >> a & 1 == 1 { hi[a] } else { lo[a] };
+                self.origin[a] + i as f32 * self.size
+            });
+            let (z, u, w) = self.project(p);
+            if z.is_nan() || z <= 0.0 || !u.is_finite() || !w.is_finite() {
+                return None;
+            }
+            u0 = u0.min(u);
+            u1 = u1.max(u);
+            v0 = v0.min(w);
+            v1 = v1.max(w);
+        }
+        // A footprint is the pixels whose centres lie in its voxel's rectangle, or the pixel its
+        // centre falls in: all within one pixel of the box's rectangle.
+        let clip = |lo: f32, hi: f32, n: usize| {
+            let a = (lo.floor() - 1.0).clamp(0.0, n as f32) as usize;
+            let b = (hi.floor() + 2.0).clamp(0.0, n as f32) as usize;
+            (a, b.max(a))
+        };
+        let (x0, x1) = clip(u0, u1, self.width);
+        let (y0, y1) = clip(v0, v1, self.height);
+        Some([x0, x1, y0, y1])
     }
 
     /// The footprint of voxel `v` (see the module docs); `None` when a corner is behind the camera or
@@ -389,6 +504,37 @@ pub(crate) fn sample_view(
     } else {
         (count, sum.map(|s| s as f32 / count as f32))
     }
+}
+
+/// Width of the silhouette contour band of [`touches_contour`], pixels.
+pub const CONTOUR_BAND_PX: i64 = 2;
+
+/// Whether a pixel of footprint `fp` for which `visible(x, y)` holds lies on the view's silhouette
+/// contour: inside the mask with a pixel outside it within [`CONTOUR_BAND_PX`] along a row or
+/// column (the image border is no contour: the object may go on beyond it). Always `false` without
+/// a mask.
+///
+/// The carvers keep such voxels: the visual hull touches the object along its rims, so a voxel that
+/// a view sees on its silhouette's outline lies on the surface (up to the silhouettes' accuracy),
+/// and carving it would shrink that view's silhouette of the result below the hull's.
+pub(crate) fn touches_contour(view: &PhotoView<'_>, fp: &Footprint, visible: impl Fn(usize, usize) -> bool) -> bool {
+    let Some(m) = view.mask else { return false };
+    let (w, h) = (m.width(), m.height());
+    let outside = |x: i64, y: i64| x >= 0 && y >= 0 && x < w as i64 && y < h as i64 && !m.get(x as u32, y as u32);
+    for y in fp.y0..fp.y1 {
+        for x in fp.x0..fp.x1 {
+            if !visible(x, y) || !m.get(x as u32, y as u32) {
+                continue;
+            }
+            let (xi, yi) = (x as i64, y as i64);
+            for d in 1..=CONTOUR_BAND_PX {
+                if outside(xi - d, yi) || outside(xi + d, yi) || outside(xi, yi - d) || outside(xi, yi + d) {
+                    return true;
+                }
+            }
+        }
+    }
+    false
 }
 
 /// The colour of the pixel voxel `v`'s centre projects into, if `visible(x, y)` holds there and the
@@ -563,6 +709,41 @@ mod tests {
         let ncc = mean_ncc(&[a, inverted, third]).expect("textured");
         assert!(ncc < 0.9, "{ncc}");
         assert!(mean_ncc(&[[50.0; 24], [51.0; 24]]).is_none());
+    }
+
+    #[test]
+    fn immerkaer_estimate_recovers_the_added_noise_and_ignores_smooth_shading() {
+        use crate::geometry::{CameraModel, Intrinsics, Pose};
+        use nalgebra::Vector3;
+        let camera = CameraModel {
+            width: 200,
+            height: 150,
+            intrinsics: Intrinsics { fx: 200.0, fy: 200.0, cx: 100.0, cy: 75.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+            pose: Pose::look_at(Vector3::new(0.0, -1.0, 0.0), Vector3::zeros(), Vector3::z()),
+        };
+        // A linear ramp (the mask's Laplacian cancels it) plus uniform noise of +-6 levels (sd 3.46).
+        let mut seed = 12345u64;
+        let mut noise = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 33) % 13) as i32 - 6
+        };
+        let img = RgbImage::from_fn(200, 150, |x, y| {
+            let base = 60 + x as i32 / 2 + y as i32 / 3;
+            image::Rgb([0, 1, 2].map(|_| (base + noise()).clamp(0, 255) as u8))
+        });
+        let sd = (((13 * 13 - 1) as f32) / 12.0).sqrt();
+        let view = PhotoView { camera, image: &img, mask: None };
+        let sigma = image_noise_sigma(&view).expect("interior pixels");
+        assert!((sigma - sd).abs() < 0.15 * sd, "estimated {sigma}, added {sd}");
+        let clean = RgbImage::from_fn(200, 150, |x, y| image::Rgb([(60 + x / 2 + y / 3) as u8; 3]));
+        let clean_view = PhotoView { image: &clean, ..view };
+        assert!(image_noise_sigma(&clean_view).expect("interior pixels") < 0.5);
+        // The derived threshold follows the spread's outliers and never falls below K x image noise.
+        let n = PhotoNoise { image_sigma: sigma, spread_median: 9.0, spread_mad: 2.0, voxels: 100 };
+        assert!((n.threshold() - (9.0 + PhotoNoise::K * 1.4826 * 2.0)).abs() < 1e-4);
+        let quiet = PhotoNoise { spread_median: 1.0, spread_mad: 0.0, ..n };
+        assert!((quiet.threshold() - PhotoNoise::K * sigma).abs() < 1e-4);
+        assert_eq!(PhotoParams::default().with_measured_noise(&n).threshold, n.threshold());
     }
 
     #[test]

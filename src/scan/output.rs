@@ -26,7 +26,7 @@ use crate::acquisition::AcquisitionSummary;
 use crate::config::{Method, RigConfig};
 use crate::atomic::{is_atomic_temp, write_atomic};
 use crate::pipeline::export;
-use crate::pipeline::{reprojection_iou, Occupancy, View};
+use crate::pipeline::{keep_main_component, reprojection_iou, Occupancy, View};
 
 /// The files of an earlier result that [`OutputDir::prepare`] removes (`report.json` first).
 const RESULT_FILES: [&str; 6] = ["model.ply", "model.stl", "model.obj", "voxels.ply", "cloud.ply", "rig.toml"];
@@ -205,6 +205,14 @@ impl OutputDir {
             details,
         } = outcome;
 
+        // One watertight surface: parts floating apart from the main one and internal cavities go.
+        let t = Instant::now();
+        let (mesh, mesh_cleanup) = keep_main_component(&mesh);
+        timings.mesh += t.elapsed().as_secs_f64();
+        if mesh_cleanup.triangles_removed > 0 {
+            tracing::info!(?mesh_cleanup, "mesh cleaned to its main component");
+        }
+
         events(ScanEvent::Stage("export"));
         let t = Instant::now();
         let p = |name: &str| self.path.join(name);
@@ -265,6 +273,7 @@ impl OutputDir {
             occupied_voxels: solid.count(),
             volume_m3: solid.volume_m3(),
             mesh_triangles: mesh.triangles.len(),
+            mesh_cleanup,
             timings_s: timings,
             reprojection_iou: reprojection,
             reprojection_iou_mean: mean,

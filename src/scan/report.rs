@@ -29,6 +29,9 @@ pub struct Report {
     pub volume_m3: f64,
     /// Triangles in the mesh.
     pub mesh_triangles: usize,
+    /// What the mesh clean-up removed to leave one watertight component (floating parts, internal
+    /// cavities); `mesh_triangles` counts what is left.
+    pub mesh_cleanup: crate::pipeline::MeshCleanStats,
     /// Wall-clock time per stage, seconds.
     pub timings_s: Timings,
     /// Silhouette re-projection IoU per view (voxel footprints splatted), in view order.

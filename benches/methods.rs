@@ -1,0 +1,374 @@
+//! Every other method against its peer or target, in one run: TSDF depth fusion against Open3D's
+//! `UniformTSDFVolume.integrate` (`benches/tsdf_open3d_peer.py`, same 16-bit millimetre depth maps,
+//! intrinsics, poses, voxel size and truncation), laser stripe extraction + triangulation at
+//! 640x480 and 1280x960 against a numpy implementation of the same per-row peak
+//! (`benches/laser_numpy_peer.py`, same PNG frames), structured light decode + triangulate + merge
+//! of one 1280x1024 view (Gray code, 4-step phase shift), and shadow carving at 128³ with 24
+//! positions x 4 lights. Inputs are synthetic and analytic (a sphere, a plane); the peers read the
+//! files this bench writes to a temporary directory, and are run by it, so each ratio comes from
+//! one run. Each case prints a line and a `PERF` line (JSON) for `benches/perf_table.py`; a peer
+//! that cannot run (no python3, no Open3D) is reported as such, with no ratio.
+//!
+//! `cargo bench --bench methods`; `PYTHON=...` picks the interpreter.
+
+use std::hint::black_box;
+use std::path::Path;
+use std::process::Command;
+use std::time::Instant;
+
+use image::{ImageBuffer, Luma, RgbImage};
+use scanrig::geometry::{Aabb, CameraModel, Intrinsics, Pose, Vector3, VoxelGrid};
+use scanrig::pipeline::laser::{detect_stripe, triangulate_peaks, Plane, StripeParams};
+use scanrig::pipeline::structured_light::phase::{PhaseDecodeParams, PhaseShiftPatterns, Unwrapping};
+use scanrig::pipeline::structured_light::{
+    decode, triangulate, DecodeParams, GrayCodePatterns, ProjectorCoords, ProjectorMap, TriangulationParams,
+};
+use scanrig::pipeline::{
+    carve_shadows, FusionParams, Mask, Occupancy, PointCloud, ShadowCarveParams, ShadowView, Tsdf,
+};
+
+/// Median wall-clock seconds of `runs` calls.
+fn median_s(runs: usize, mut f: impl FnMut()) -> f64 {
+    let mut t: Vec<f64> = (0..runs)
+        .map(|_| {
+            let s = Instant::now();
+            f();
+            s.elapsed().as_secs_f64()
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    t[runs / 2]
+}
+
+/// One line for `benches/perf_table.py`. `ours` and `peer` in seconds per unit of work; `rate` the
+/// unit's name when the figure is a throughput (frames/s, clouds/s).
+fn perf_line(method: &str, case: &str, ours: f64, peer: Option<(&str, f64)>, rate: Option<&str>) {
+    let (name, p) = peer.map_or((None, None), |(n, s)| (Some(n), Some(s)));
+    println!(
+        "PERF {}",
+        serde_json::json!({"method": method, "case": case, "ours_s": ours, "peer": name, "peer_s": p,
+            "ratio": p.map(|p| p / ours), "rate": rate})
+    );
+}
+
+/// Run `benches/<script>` with `args`; its last line `PEER_S <seconds>` is the peer's time.
+fn run_peer(script: &str, args: &[&str]) -> Result<f64, String> {
+    let python = std::env::var("PYTHON").unwrap_or_else(|_| "python3".into());
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches").join(script);
+    let out = Command::new(&python).arg(&path).args(args).output().map_err(|e| format!("{python}: {e}"))?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    print!("{text}");
+    if !out.status.success() {
+        return Err(String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or("failed").to_string());
+    }
+    text.lines()
+        .rev()
+        .find_map(|l| l.strip_prefix("PEER_S ").and_then(|x| x.trim().parse().ok()))
+        .ok_or_else(|| "no PEER_S line".into())
+}
+
+fn intrinsics(w: u32, h: u32, f: f64) -> Intrinsics {
+    Intrinsics { fx: f, fy: f, cx: w as f64 / 2.0, cy: h as f64 / 2.0, skew: 0.0, k1: 0.0, k2: 0.0 }
+}
+
+/// Distance along the unit ray `o + t d` to the sphere (centre `c`, radius `r`), if it hits.
+fn hit_sphere(o: &Vector3<f64>, d: &Vector3<f64>, c: &Vector3<f64>, r: f64) -> Option<f64> {
+    let oc = o - c;
+    let b = oc.dot(d);
+    let disc = b * b - (oc.norm_squared() - r * r);
+    (disc >= 0.0).then(|| -b - disc.sqrt()).filter(|&t| t > 0.0)
+}
+
+fn ring(n: usize, radius: f64, height: f64, w: u32, h: u32, f: f64) -> Vec<CameraModel> {
+    (0..n)
+        .map(|i| {
+            let a = i as f64 / n as f64 * std::f64::consts::TAU;
+            let eye = Vector3::new(radius * a.cos(), radius * a.sin(), height);
+            CameraModel {
+                width: w,
+                height: h,
+                intrinsics: intrinsics(w, h, f),
+                pose: Pose::look_at(eye, Vector3::zeros(), Vector3::z()),
+            }
+        })
+        .collect()
+}
+
+fn tsdf(dir: &Path) {
+    const R: f64 = 0.05;
+    let (w, h) = (640u32, 480u32);
+    let cams = ring(24, 0.35, 0.12, w, h, 525.0);
+    let centre = Vector3::zeros();
+    let n = 128u32;
+    let bbox = Aabb { min: [-0.07; 3], max: [0.07; 3] };
+    let grid = VoxelGrid::from_resolution(&bbox, n);
+    let trunc = 3.0 * grid.voxel_size;
+    // Depth maps in whole millimetres, as the PNGs hold them, so both sides fuse the same values.
+    let mut depths = Vec::new();
+    let mut meta = Vec::new();
+    for (i, cam) in cams.iter().enumerate() {
+        let o = cam.centre();
+        let mut png: ImageBuffer<Luma<u16>, Vec<u16>> = ImageBuffer::new(w, h);
+        let mut depth = vec![0f32; (w * h) as usize];
+        for v in 0..h {
+            for u in 0..w {
+                let d = cam.pixel_ray(u as f64 + 0.5, v as f64 + 0.5).normalize();
+                if let Some(t) = hit_sphere(&o, &d, &centre, R) {
+                    let z = cam.pose.apply(&(o + d * t)).z;
+                    let mm = (z * 1000.0).round() as u16;
+                    png.put_pixel(u, v, Luma([mm]));
+                    depth[(v * w + u) as usize] = mm as f32 / 1000.0;
+                }
+            }
+        }
+        png.save(dir.join(format!("depth_{i:02}.png"))).expect("write depth PNG");
+        depths.push(depth);
+        let r = &cam.pose.rotation;
+        let t = &cam.pose.translation;
+        let ext: Vec<Vec<f64>> = (0..4)
+            .map(|a| if a < 3 { vec![r[(a, 0)], r[(a, 1)], r[(a, 2)], t[a]] } else { vec![0.0, 0.0, 0.0, 1.0] })
+            .collect();
+        meta.push(serde_json::json!({"depth": format!("depth_{i:02}.png"), "extrinsic": ext}));
+    }
+    let i = cams[0].intrinsics;
+    let spec = serde_json::json!({"width": w, "height": h, "fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy,
+        "origin": bbox.min, "length": bbox.max[0] - bbox.min[0], "resolution": n, "sdf_trunc": trunc,
+        "views": meta});
+    std::fs::write(dir.join("tsdf.json"), spec.to_string()).expect("write tsdf.json");
+    let params = FusionParams { truncation_m: trunc, max_weight: 64.0, missing_is_free: true };
+    let ours = median_s(5, || {
+        let mut t = Tsdf::new(grid, params).expect("grid");
+        for (cam, d) in cams.iter().zip(&depths) {
+            t.integrate(cam, d).expect("integrates");
+        }
+        black_box(t);
+    });
+    println!("tsdf {n}^3, 24 depth maps 640x480: {:.3} s ({:.1} ms per map)", ours, ours / 24.0 * 1e3);
+    match run_peer("tsdf_open3d_peer.py", &[dir.join("tsdf.json").to_str().expect("utf-8 path")]) {
+        Ok(p) => {
+            println!("tsdf: Open3D UniformTSDFVolume {p:.3} s, ratio {:.1}x", p / ours);
+            perf_line(
+                "depth-fusion (TSDF)",
+                "128^3, 24 depth maps 640x480",
+                ours,
+                Some(("Open3D UniformTSDFVolume", p)),
+                None,
+            );
+        }
+        Err(e) => {
+            println!("tsdf: peer unavailable ({e})");
+            perf_line("depth-fusion (TSDF)", "128^3, 24 depth maps 640x480", ours, None, None);
+        }
+    }
+}
+
+fn laser(dir: &Path) {
+    for (w, h) in [(640u32, 480u32), (1280, 960)] {
+        let f = 1.3 * w as f64;
+        let cam = CameraModel {
+            width: w,
+            height: h,
+            intrinsics: intrinsics(w, h, f),
+            pose: Pose::look_at(Vector3::new(0.0, -0.3, 0.1), Vector3::zeros(), Vector3::z()),
+        };
+        let plane = Plane::through([0.0, 0.0, 0.0], [1.0, 0.2, 0.0]).expect("plane");
+        // A dark scene with texture, and the same with a red stripe that wanders across the rows.
+        let off = RgbImage::from_fn(w, h, |u, v| {
+            let g = (20 + (u * 7 + v * 13) % 23) as u8;
+            image::Rgb([g, g, g])
+        });
+        let on = RgbImage::from_fn(w, h, |u, v| {
+            let c = w as f64 / 2.0 + (v as f64 * 0.013).sin() * w as f64 / 6.0;
+            let s = 200.0 * (-((u as f64 - c) / 1.5).powi(2)).exp();
+            let p = off.get_pixel(u, v).0;
+            image::Rgb([(p[0] as f64 + s).min(255.0) as u8, p[1], p[2]])
+        });
+        let (off_path, on_path) = (dir.join(format!("laser_off_{w}.png")), dir.join(format!("laser_on_{w}.png")));
+        off.save(&off_path).expect("write");
+        on.save(&on_path).expect("write");
+        let params = StripeParams::default();
+        let mut points = 0;
+        let ours = median_s(51, || {
+            let peaks = detect_stripe(&off, &on, [255, 0, 0], &params).expect("params");
+            let pts = triangulate_peaks(&cam, &plane, &peaks);
+            points = pts.len();
+            black_box(pts);
+        });
+        let case = format!("{w}x{h}, one stripe");
+        println!("laser {w}x{h}: {:.3} ms per frame ({:.0} frames/s), {points} points", ours * 1e3, 1.0 / ours);
+        let spec = serde_json::json!({"off": off_path, "on": on_path, "min_peak": params.min_peak,
+            "max_width": params.max_width_px, "half_window": params.half_window_px,
+            "fx": f, "fy": f, "cx": w as f64 / 2.0, "cy": h as f64 / 2.0,
+            "rotation": (0..3).map(|a| (0..3).map(|b| cam.pose.rotation[(a, b)]).collect::<Vec<_>>()).collect::<Vec<_>>(),
+            "translation": [cam.pose.translation.x, cam.pose.translation.y, cam.pose.translation.z],
+            "plane_normal": plane.normal, "plane_offset": plane.offset_m, "points": points});
+        let spec_path = dir.join(format!("laser_{w}.json"));
+        std::fs::write(&spec_path, spec.to_string()).expect("write");
+        match run_peer("laser_numpy_peer.py", &[spec_path.to_str().expect("utf-8 path")]) {
+            Ok(p) => {
+                println!("laser {w}x{h}: numpy {:.3} ms per frame, ratio {:.1}x", p * 1e3, p / ours);
+                perf_line("laser", &case, ours, Some(("numpy per-row peak", p)), Some("frames/s"));
+            }
+            Err(e) => {
+                println!("laser: peer unavailable ({e})");
+                perf_line("laser", &case, ours, None, Some("frames/s"));
+            }
+        }
+    }
+}
+
+/// Camera and projector side by side looking at a plane 0.5 m away; the capture of `pattern`
+/// (projector-sized grey images) as the camera sees it.
+fn procam(w: u32, h: u32) -> (CameraModel, CameraModel) {
+    let target = Vector3::new(0.0, 0.0, 0.0);
+    let cam = CameraModel {
+        width: w,
+        height: h,
+        intrinsics: intrinsics(w, h, 1.2 * w as f64),
+        pose: Pose::look_at(Vector3::new(-0.1, -0.5, 0.0), target, Vector3::z()),
+    };
+    let proj = CameraModel {
+        width: 1024,
+        height: 768,
+        intrinsics: intrinsics(1024, 768, 1000.0),
+        pose: Pose::look_at(Vector3::new(0.1, -0.5, 0.0), target, Vector3::z()),
+    };
+    (cam, proj)
+}
+
+/// Per camera pixel, the projector pixel that lights it (the scene is the plane y = 0, facing
+/// both), or `None`.
+fn lookup(cam: &CameraModel, proj: &CameraModel) -> Vec<Option<usize>> {
+    let o = cam.centre();
+    (0..cam.height)
+        .flat_map(|v| (0..cam.width).map(move |u| (u, v)))
+        .map(|(u, v)| {
+            let d = cam.pixel_ray(u as f64 + 0.5, v as f64 + 0.5);
+            let t = -o.y / d.y;
+            if t <= 0.0 {
+                return None;
+            }
+            let (pu, pv) = proj.pixel_of(&(o + d * t))?;
+            Some((pv * proj.width + pu) as usize)
+        })
+        .collect()
+}
+
+fn structured_light() {
+    let (w, h) = (1280u32, 1024u32);
+    let (cam, proj) = procam(w, h);
+    let map = lookup(&cam, &proj);
+    let capture = |pattern: &[u8]| -> Vec<u8> {
+        map.iter().map(|m| m.map_or(10, |i| (30 + u32::from(pattern[i]) * 180 / 255) as u8)).collect()
+    };
+    let tri = TriangulationParams::default();
+    // Gray code.
+    let gray = GrayCodePatterns::new(proj.width, proj.height).expect("projector");
+    let images: Vec<Vec<u8>> = (0..gray.count()).map(|i| capture(&gray.render(i).expect("in range"))).collect();
+    let imgs: Vec<&[u8]> = images.iter().map(Vec::as_slice).collect();
+    let prm = DecodeParams::default();
+    let mut pm = ProjectorMap::new();
+    let mut merged = PointCloud::new();
+    let mut points = 0;
+    let ours = median_s(7, || {
+        decode(&gray, &imgs, w as usize, h as usize, &prm, &mut pm).expect("decodes");
+        let coords = ProjectorCoords::from_map(&pm, true);
+        let range = triangulate(&cam, &proj, &coords, None, &tri).expect("triangulates");
+        let cloud = PointCloud::from_points(range.valid_points().map(|p| p.0).collect());
+        points = cloud.len();
+        merged = PointCloud::new();
+        merged.extend(cloud);
+    });
+    println!(
+        "structured light Gray code {w}x{h} ({} images): decode + triangulate + merge {:.1} ms ({:.1} clouds/s), {points} points",
+        gray.count(),
+        ours * 1e3,
+        1.0 / ours
+    );
+    perf_line("structured light (Gray code)", "1280x1024, one view", ours, None, Some("clouds/s"));
+    // 4-step phase shift with Gray-code unwrapping, columns and rows.
+    let phase = PhaseShiftPatterns::new(proj.width, proj.height, 4, 16.0, Unwrapping::GrayCode, true).expect("layout");
+    let images: Vec<Vec<u8>> = (0..phase.count()).map(|i| capture(&phase.render(i, None).expect("in range"))).collect();
+    let imgs: Vec<&[u8]> = images.iter().map(Vec::as_slice).collect();
+    let prm = PhaseDecodeParams::default();
+    let ours = median_s(7, || {
+        let coords = phase.decode(&imgs, w as usize, h as usize, &prm).expect("decodes");
+        let range = triangulate(&cam, &proj, &coords, None, &tri).expect("triangulates");
+        let cloud = PointCloud::from_points(range.valid_points().map(|p| p.0).collect());
+        points = cloud.len();
+        merged = PointCloud::new();
+        merged.extend(cloud);
+    });
+    println!(
+        "structured light 4-step phase {w}x{h} ({} images): decode + triangulate + merge {:.1} ms ({:.1} clouds/s), {points} points",
+        phase.count(),
+        ours * 1e3,
+        1.0 / ours
+    );
+    perf_line("structured light (4-step phase)", "1280x1024, one view", ours, None, Some("clouds/s"));
+    black_box(merged);
+}
+
+fn shadow_carving() {
+    // A sphere on the ground plane z = 0; its hull is the sphere grown by three voxels; 24 turntable
+    // positions x 4 lights; the shadow masks are the attached and cast shadows of each light.
+    const R: f64 = 0.035;
+    let c = Vector3::new(0.0, 0.0, R);
+    let bbox = Aabb { min: [-0.045, -0.045, 0.0], max: [0.045, 0.045, 0.09] };
+    let grid = VoxelGrid::from_resolution(&bbox, 128);
+    let grow = R + 3.0 * grid.voxel_size;
+    let hull = Occupancy::from_fn(grid, |p| (p - c).norm() <= grow);
+    let cams = ring(24, 0.4, 0.2, 640, 480, 900.0);
+    let lights: Vec<Vector3<f64>> = (0..4)
+        .map(|l| {
+            let a = l as f64 * std::f64::consts::FRAC_PI_2 + 0.4;
+            Vector3::new(0.3 * a.cos(), 0.3 * a.sin(), 0.35)
+        })
+        .collect();
+    let mut masks = Vec::new();
+    let mut setup = Vec::new();
+    for cam in &cams {
+        for l in &lights {
+            let o = cam.centre();
+            masks.push(Mask::from_fn(640, 480, |u, v| {
+                let d = cam.pixel_ray(u as f64 + 0.5, v as f64 + 0.5).normalize();
+                let (p, n) = match hit_sphere(&o, &d, &c, R) {
+                    Some(t) => {
+                        let p = o + d * t;
+                        (p, (p - c) / R)
+                    }
+                    None if d.z < 0.0 => (o + d * (-o.z / d.z), Vector3::z()),
+                    None => return false,
+                };
+                let to_light = (l - p).normalize();
+                n.dot(&to_light) < 0.0 || hit_sphere(&(p + to_light * 1e-6), &to_light, &c, R).is_some()
+            }));
+            setup.push((*cam, *l));
+        }
+    }
+    let views: Vec<ShadowView<'_>> =
+        setup.iter().zip(&masks).map(|((cam, l), m)| ShadowView { camera: *cam, light_m: *l, shadow: m }).collect();
+    let mut carved = 0;
+    let ours = median_s(3, || {
+        let (occ, stats) = carve_shadows(&hull, &views, &ShadowCarveParams::default()).expect("carves");
+        carved = stats.removed;
+        black_box(occ);
+    });
+    println!("shadow carving 128^3, 24 positions x 4 lights: {ours:.3} s, {carved} voxels carved (target <= 0.5 s)");
+    perf_line("shadow carving", "128^3, 24 positions x 4 lights", ours, None, None);
+}
+
+fn main() {
+    // `cargo bench` passes `--bench`; nothing to parse.
+    let dir = tempfile::tempdir().expect("temporary directory");
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    println!(
+        "machine: {} cores, load average {}",
+        std::thread::available_parallelism().map_or(0, |n| n.get()),
+        load.trim()
+    );
+    tsdf(dir.path());
+    laser(dir.path());
+    structured_light();
+    shadow_carving();
+}

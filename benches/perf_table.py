@@ -1,0 +1,115 @@
+#!/usr/bin/env python3
+"""Regenerate the README's performance table from bench output.
+
+Usage (one command, from the repository root):
+    python3 benches/perf_table.py --run          # runs `cargo bench --bench photo --bench methods`,
+                                                 # keeps its output in target/perf-bench.log, rewrites README.md
+    python3 benches/perf_table.py LOG [LOG ...]  # rebuild the table from saved bench output
+
+Every `PERF {json}` line the benches print becomes one row: method, case, our time (and rate when
+the figure is a throughput), the baseline or peer and its time from the same run, and the ratio.
+The table goes between the README's `<!-- perf-table:begin -->` and `<!-- perf-table:end -->`
+markers, with the machine's core count and load averages before and after the run. Peak memory
+rows come from `--rss FILE` (lines `method | settings | peak RSS MiB`, see the README), if given.
+"""
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+BEGIN, END = "<!-- perf-table:begin -->", "<!-- perf-table:end -->"
+
+
+def loadavg():
+    try:
+        with open("/proc/loadavg") as f:
+            return " ".join(f.read().split()[:3])
+    except OSError:
+        return "unknown"
+
+
+def fmt_time(s):
+    if s is None:
+        return "-"
+    if s >= 1.0:
+        return f"{s:.2f} s"
+    if s >= 0.9995e-3:
+        return f"{s * 1e3:.1f} ms"
+    return f"{s * 1e6:.0f} us"
+
+
+def rows_from(text):
+    rows = []
+    for line in text.splitlines():
+        m = re.match(r"^PERF (\{.*\})\s*$", line)
+        if m:
+            rows.append(json.loads(m.group(1)))
+    return rows
+
+
+def table(rows, load_before, load_after, cores, rss):
+    out = [
+        f"Measured on {cores} cores; load average (1, 5, 15 min) {load_before} before the run and {load_after} "
+        "after it (other builds shared the machine; ratios come from one run, both sides under the same load).",
+        "",
+        "| method | case | ours | baseline or peer (same run) | theirs | ratio |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ours = fmt_time(r["ours_s"])
+        if r.get("rate"):
+            ours += f" ({1.0 / r['ours_s']:.0f} {r['rate']})"
+        peer = r.get("peer") or "none measured"
+        ratio = f"{r['ratio']:.1f}x" if r.get("ratio") else "-"
+        out.append(f"| {r['method']} | {r['case']} | {ours} | {peer} | {fmt_time(r.get('peer_s'))} | {ratio} |")
+    if rss:
+        out += ["", "| method | settings | peak RSS |", "|---|---|---|"]
+        for line in rss:
+            parts = [p.strip() for p in line.split("|")]
+            if len(parts) == 3:
+                out.append(f"| {parts[0]} | {parts[1]} | {parts[2]} MiB |")
+    return "\n".join(out)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("logs", nargs="*")
+    ap.add_argument("--run", action="store_true", help="run the benches first")
+    ap.add_argument("--rss", help="file of `method | settings | MiB` lines")
+    ap.add_argument("--readme", default=os.path.join(ROOT, "README.md"))
+    a = ap.parse_args()
+    before = loadavg()
+    text = ""
+    if a.run:
+        log = os.path.join(ROOT, "target", "perf-bench.log")
+        with open(log, "w") as f:
+            subprocess.run(["cargo", "bench", "--bench", "photo", "--bench", "methods"], cwd=ROOT, stdout=f, check=True)
+        a.logs.append(log)
+    for p in a.logs:
+        with open(p) as f:
+            text += f.read() + "\n"
+    m = re.search(r"load average ([\d.]+ [\d.]+ [\d.]+)", text)
+    if m and not a.run:
+        before = m.group(1)
+    rows = rows_from(text)
+    if not rows:
+        sys.exit("no PERF lines in the bench output")
+    rss = open(a.rss).read().splitlines() if a.rss else []
+    body = table(rows, before, loadavg(), os.cpu_count(), rss)
+    with open(a.readme) as f:
+        readme = f.read()
+    if BEGIN not in readme or END not in readme:
+        sys.exit(f"{a.readme} has no {BEGIN} ... {END} markers")
+    head, rest = readme.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    with open(a.readme, "w") as f:
+        f.write(head + BEGIN + "\n" + body + "\n" + END + tail)
+    print(body)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,153 @@
+//! Voxel colouring on the surface only, behind [`super::color_voxels`].
+//!
+//! The layers and verdicts are those of [`super::color_voxels_every_voxel`]; what differs is which
+//! voxels are looked at. The start is cut into 4³ bricks. A brick joins the sweep at the first layer
+//! any of its voxels is in and leaves it after the last; when a layer reaches it, the brick's pixel
+//! rectangle in every view (every footprint of its voxels lies in it, see
+//! `VoxelCamera::box_pixels`) is checked against the claimed pixels: when every view's rectangle is
+//! claimed, none of its voxels can see an unclaimed pixel in this or any later layer (claims only
+//! grow), so each would be left unseen and kept; the brick is dropped without projecting a voxel.
+//! Interior bricks go that way as soon as the surface in front of them is kept. Without a bound (a
+//! corner behind a camera, a distorting lens) a brick is never dropped. The result is the same,
+//! voxel for voxel.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use super::{
+    claim, colour_dense, colouring_verdict, ordinal_direction, restore_silhouettes, Dense, PhotoModel, PhotoStats,
+};
+use crate::pipeline::occupancy::Occupancy;
+use crate::pipeline::photo_consistency::{check_inputs, PhotoError, PhotoParams, PhotoView, VoxelCamera};
+
+/// Brick edge, voxels.
+const B: u32 = 4;
+
+/// A brick of the start holding occupied voxels.
+struct Brick {
+    /// Lowest voxel index along each axis.
+    lo: [u32; 3],
+    /// One past the highest.
+    hi: [u32; 3],
+    /// First and last layer of its occupied voxels.
+    first: i32,
+    last: i32,
+    /// Per view, the pixel rectangle holding its footprints; `None` without a bound.
+    rects: Option<Vec<[usize; 4]>>,
+}
+
+/// See [`super::color_voxels`].
+pub(super) fn color(
+    start: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+) -> Result<PhotoModel, PhotoError> {
+    check_inputs(start.grid(), views, params)?;
+    let d = ordinal_direction(start.grid(), views)?;
+    color_along(start, views, params, d)
+}
+
+/// Voxel colouring from `start` in layers of increasing `d·x` (`d` a unit vector, grid frame, for
+/// which `views` satisfy the ordinal visibility constraint; inputs already checked).
+pub(super) fn color_along(
+    start: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+    d: [f64; 3],
+) -> Result<PhotoModel, PhotoError> {
+    let t = Instant::now();
+    let grid = *start.grid();
+    let d = d.map(|x| x as f32);
+    let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let mut dense = Dense::from(start);
+    let key = |v: [u32; 3]| (d[0] * v[0] as f32 + d[1] * v[1] as f32 + d[2] * v[2] as f32).floor() as i32;
+
+    let dims = grid.dims;
+    let nb = dims.map(|n| (n as u32).div_ceil(B));
+    let mut bricks: Vec<Brick> = (0..nb[0] * nb[1] * nb[2])
+        .into_par_iter()
+        .filter_map(|b| {
+            let c = [b % nb[0], b / nb[0] % nb[1], b / (nb[0] * nb[1])];
+            let lo = c.map(|x| x * B);
+            let hi = [0, 1, 2].map(|a| (lo[a] + B).min(dims[a] as u32));
+            let (mut first, mut last) = (i32::MAX, i32::MIN);
+            for k in lo[2]..hi[2] {
+                for j in lo[1]..hi[1] {
+                    for i in lo[0]..hi[0] {
+                        if dense.get(i as i64, j as i64, k as i64) {
+                            let l = key([i, j, k]);
+                            first = first.min(l);
+                            last = last.max(l);
+                        }
+                    }
+                }
+            }
+            (first <= last).then(|| {
+                let rects: Option<Vec<[usize; 4]>> = cams.iter().map(|c| c.box_pixels(lo, hi)).collect();
+                Brick { lo, hi, first, last, rects }
+            })
+        })
+        .collect();
+    bricks.sort_by_key(|b| b.first);
+
+    let mut claimed: Vec<Vec<bool>> = cams.iter().map(|c| vec![false; c.width * c.height]).collect();
+    let mut stats = PhotoStats::default();
+    let mut next = 0; // next brick to join
+    let mut active: Vec<usize> = Vec::new();
+    let mut layer_voxels: Vec<[u32; 3]> = Vec::new();
+    let (Some(l0), Some(l1)) = (bricks.first().map(|b| b.first), bricks.iter().map(|b| b.last).max()) else {
+        let surface = colour_dense(&dense, &cams, views, params);
+        return Ok(PhotoModel { occupancy: start.clone(), surface, stats });
+    };
+    for layer in l0..=l1 {
+        while next < bricks.len() && bricks[next].first == layer {
+            active.push(next);
+            next += 1;
+        }
+        active.retain(|&b| bricks[b].last >= layer);
+        // Drop the bricks every view's claims cover.
+        active.retain(|&b| {
+            let Some(rects) = &bricks[b].rects else { return true };
+            !rects.iter().zip(&claimed).zip(&cams).all(|((r, marks), cam)| {
+                (r[2]..r[3]).all(|y| marks[y * cam.width + r[0]..y * cam.width + r[1]].iter().all(|&m| m))
+            })
+        });
+        layer_voxels.clear();
+        for &b in &active {
+            let (lo, hi) = (bricks[b].lo, bricks[b].hi);
+            for k in lo[2]..hi[2] {
+                for j in lo[1]..hi[1] {
+                    for i in lo[0]..hi[0] {
+                        let v = [i, j, k];
+                        if key(v) == layer && dense.get(i as i64, j as i64, k as i64) {
+                            layer_voxels.push(v);
+                        }
+                    }
+                }
+            }
+        }
+        if layer_voxels.is_empty() {
+            continue;
+        }
+        stats.iterations += 1;
+        let verdicts: Vec<Option<bool>> =
+            layer_voxels.par_iter().map(|&v| colouring_verdict(&dense, &cams, views, &claimed, v, params)).collect();
+        stats.visits += layer_voxels.len() as u64;
+        for (&v, verdict) in layer_voxels.iter().zip(&verdicts) {
+            match verdict {
+                Some(false) => {
+                    dense.clear(v);
+                    stats.carved += 1;
+                }
+                Some(true) => claim(&cams, &mut claimed, v),
+                None => {}
+            }
+        }
+    }
+    stats.carved -= restore_silhouettes(start, &mut dense, views);
+    let occupancy = dense.to_occupancy(grid);
+    let surface = colour_dense(&dense, &cams, views, params);
+    stats.seconds = t.elapsed().as_secs_f64();
+    Ok(PhotoModel { occupancy, surface, stats })
+}
