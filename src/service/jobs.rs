@@ -172,8 +172,17 @@ impl Jobs {
         }
         if let Some(l) = req.lights {
             let count = config.lights.as_ref().map_or(0, |l| l.lights.len());
-            if l.iter().any(|&i| i >= count) || l.len() > 64 {
-                return Err(JobError::Invalid { field: "lights", problem: "index out of range" });
+            if l.len() > 64 {
+                return Err(JobError::Invalid {
+                    field: "lights",
+                    problem: "at most 64 entries (one per light switched on)",
+                });
+            }
+            if l.iter().any(|&i| i >= count) {
+                return Err(JobError::Invalid {
+                    field: "lights",
+                    problem: "a light index is not one of the rig's lights",
+                });
             }
             config.scan.lights = l;
         }
@@ -208,11 +217,16 @@ impl Jobs {
         let mut config = config.clone();
         config.scan.positions = meta.positions;
         config.scan.lights.clone_from(&meta.lights);
+        let before = meta.clone();
         meta.status = ScanStatus::Running;
         meta.error = None;
         meta.resumes += 1;
         meta.updated_unix = super::store::now_unix();
-        self.store.save(&meta).map_err(JobError::Store)?;
+        if let Err(e) = self.store.save(&meta) {
+            // Not resumed (the disk is full): the scan keeps the status it had.
+            let _ = self.store.save(&before);
+            return Err(JobError::Store(e));
+        }
         self.launch(&mut active, meta.clone(), config, true);
         Ok(meta)
     }
