@@ -376,3 +376,16 @@ async fn metrics(State(s): State<AppState>) -> Response {
 async fn page() -> Response {
     ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], include_str!("../../web/index.html")).into_response()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::constant_time_eq;
+
+    #[test]
+    fn token_comparison_is_exact_whatever_the_lengths() {
+        assert!(constant_time_eq(b"s3cret", b"s3cret"));
+        for given in [&b""[..], b"s3cre", b"s3cret!", b"s3creT", b"\xff\xff\xff\xff\xff\xff"] {
+            assert!(!constant_time_eq(given, b"s3cret"), "{given:?}");
+        }
+    }
+}
