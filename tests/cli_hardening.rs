@@ -86,3 +86,34 @@ fn a_device_as_an_image_is_named_as_not_a_regular_file() {
     assert!(stderr.contains("not a regular file") && stderr.contains("a device"), "{stderr}");
     assert!(!stderr.contains("does not exist"), "{stderr}");
 }
+
+#[test]
+fn validate_names_every_unknown_key_and_a_misspelled_section_with_lines_and_refuses_a_huge_grid() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let base =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/simulated.toml")).expect("rig");
+    let text = base.replacen("[scan]\n", "[scan]\npositons = 3\nstart_degs = 1.0\n", 1).replacen(
+        "[reconstruction]\n",
+        "[reconstuction]\n",
+        1,
+    );
+    let rig = dir.path().join("rig.toml");
+    std::fs::write(&rig, &text).expect("write");
+    let line_of = |needle: &str| text.lines().position(|l| l.starts_with(needle)).expect("needle") + 1;
+    let o = scanrig(&[os("validate"), os("--rig"), rig.as_os_str()], Duration::from_secs(30));
+    assert!(!o.status.success());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    for (key, line) in [
+        ("scan.positons", line_of("positons")),
+        ("scan.start_degs", line_of("start_degs")),
+        ("reconstuction", line_of("[reconstuction]")),
+    ] {
+        assert!(stderr.contains(&format!("line {line}: `{key}`")), "{key} at line {line}: {stderr}");
+    }
+
+    std::fs::write(&rig, base.replacen("resolution = 128", "resolution = 4096", 1)).expect("write");
+    let o = scanrig(&[os("validate"), os("--rig"), rig.as_os_str()], Duration::from_secs(30));
+    assert!(!o.status.success());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(stderr.contains("resolution 4096 needs about") && stderr.contains("memory_budget_mb"), "{stderr}");
+}
