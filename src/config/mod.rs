@@ -144,6 +144,11 @@ fn deserialize_all(text: &str, path: &Path) -> Result<(RigConfig, Vec<Problem>),
             problems.push(Problem { key: key.to_owned(), line: Some(line), message });
         }
     }
+    // Then unknown keys inside each section, section by section, so that a missing field in one
+    // section does not hide an unknown key in another.
+    for name in &known {
+        section_unknowns(&mut working, name, &mut problems);
+    }
     for _ in 0..=MAX_UNKNOWN {
         let joined = working.join("\n");
         let e = match toml::from_str::<RigConfig>(&joined) {
@@ -158,7 +163,7 @@ fn deserialize_all(text: &str, path: &Path) -> Result<(RigConfig, Vec<Problem>),
         if let Some((first, last, key)) = unknown.as_deref().and_then(|f| find_unknown(&working, line, f)) {
             problems.push(Problem { key, line: Some(first + 1), message });
             for l in &mut working[first..=last] {
-                l.insert_str(0, "#");
+                l.insert(0, '#');
             }
             continue;
         }
@@ -171,6 +176,54 @@ fn deserialize_all(text: &str, path: &Path) -> Result<(RigConfig, Vec<Problem>),
         return Err(ConfigError::Invalid { path: path.to_owned(), problems });
     }
     Err(ConfigError::Invalid { path: path.to_owned(), problems })
+}
+
+/// Deserialize section `name` of the (partly commented-out) file on its own and record each of its
+/// unknown keys (commenting it out and going on). Other errors are left for the whole-file parse.
+fn section_unknowns(working: &mut [String], name: &str, problems: &mut Vec<Problem>) {
+    fn probe<T: serde::de::DeserializeOwned>(v: toml::Value) -> Option<String> {
+        let e = T::deserialize(v).err()?;
+        let m = e.message().trim().to_owned();
+        m.starts_with("unknown field `").then_some(m)
+    }
+    for _ in 0..MAX_UNKNOWN {
+        let Ok(table) = toml::from_str::<toml::Table>(&working.join("\n")) else { return };
+        let Some(v) = table.get(name).cloned() else { return };
+        let message = match name {
+            "rig" => probe::<RigSection>(v),
+            "turntable" => probe::<TurntableConfig>(v),
+            "lights" => probe::<LightsConfig>(v),
+            "camera" => probe::<CameraConfig>(v),
+            "projector" => probe::<ProjectorConfig>(v),
+            "depth_camera" => probe::<DepthCameraConfig>(v),
+            "controller" => probe::<ControllerConfig>(v),
+            "sim" => probe::<SimConfig>(v),
+            "scan" => probe::<ScanPlan>(v),
+            "reconstruction" => probe::<ReconstructionConfig>(v),
+            _ => None,
+        };
+        let Some(message) = message else { return };
+        let Some(field) = message.strip_prefix("unknown field `").and_then(|m| m.split_once('`')).map(|(f, _)| f)
+        else {
+            return;
+        };
+        // The first live line in this section (or its subsections) that is the key or a header for it.
+        let in_section = |i: usize| {
+            section_of(working, i).is_some_and(|s| {
+                let s = s.trim_start_matches('[').trim();
+                s == name || s.starts_with(&format!("{name}."))
+            })
+        };
+        let hit = (0..working.len())
+            .filter(|&i| !working[i].trim_start().starts_with('#') && in_section(i))
+            .find_map(|i| find_unknown(working, i + 1, field).filter(|(first, _, _)| *first == i));
+        let Some((first, last, key)) = hit else { return };
+        let key = if key.starts_with(name) { key } else { format!("{name}.{key}") };
+        problems.push(Problem { key, line: Some(first + 1), message });
+        for l in &mut working[first..=last] {
+            l.insert(0, '#');
+        }
+    }
 }
 
 /// The top-level keys of a rig file, as the parser itself lists them for an unknown one (so the
