@@ -417,7 +417,8 @@ mod tests {
         let without = format!("{}{}", &text[..start], &text[end..]);
         assert!(problems(&without).iter().any(|(k, _)| k == "projector"), "{:?}", problems(&without));
         let typo = text.replace("subpixel = true", "sub_pixel = true");
-        assert!(matches!(parse(&typo, Path::new("rig.toml")), Err(ConfigError::Parse { .. })));
+        let err = parse(&typo, Path::new("rig.toml")).expect_err("unknown key");
+        assert!(matches!(err, ConfigError::Invalid { .. }) && err.to_string().contains("sub_pixel"), "{err}");
     }
 
     fn shipped_phase() -> String {
@@ -464,7 +465,8 @@ mod tests {
         let t = text.replace("coding = \"phase-shift\"", "coding = \"sweep\"\nstripe_px = 2\nsweep_step_px = 3");
         assert!(problems(&t).contains(&(key("sweep_step_px"), line_of(&t, "sweep_step_px"))));
         let typo = text.replace("coding = \"phase-shift\"", "coding = \"phase\"");
-        assert!(matches!(parse(&typo, Path::new("rig.toml")), Err(ConfigError::Parse { .. })));
+        let err = parse(&typo, Path::new("rig.toml")).expect_err("unknown key");
+        assert!(matches!(err, ConfigError::Invalid { .. }) && err.to_string().contains("sub_pixel"), "{err}");
     }
 
     #[test]
