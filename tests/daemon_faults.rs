@@ -256,3 +256,96 @@ fn a_full_disk_fails_the_scan_cleanly_and_keeps_what_was_written() {
     drop(d);
     drop(fs);
 }
+
+/// Fill `dir`'s file system completely (until ENOSPC); returns the filler file.
+fn fill_completely(dir: &std::path::Path, name: &str) -> std::path::PathBuf {
+    use std::io::Write;
+    let path = dir.join(name);
+    let mut f = std::fs::File::create(&path).expect("filler");
+    let chunk = vec![0u8; 64 * 1024];
+    loop {
+        match f.write(&chunk) {
+            Ok(0) => break,
+            Ok(_) => {}
+            Err(e) if e.raw_os_error() == Some(libc::ENOSPC) => break,
+            Err(e) => panic!("filler: {e}"),
+        }
+    }
+    // Single pages a partial chunk left.
+    while f.write(&[0u8; 512]).is_ok_and(|n| n > 0) {}
+    path
+}
+
+#[test]
+fn a_completely_full_disk_keeps_the_status_true_and_resume_works_once_space_is_freed() {
+    // SAFETY: getuid has no preconditions.
+    if unsafe { libc::getuid() } != 0 {
+        eprintln!("skipped: mounting a small tmpfs for the store needs root");
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The turntable takes its real time per move, so the disk can be filled between two frames.
+    let mut edits = small_sim_edits("full-disk");
+    edits.push(("real_time = false", "real_time = true".to_owned()));
+    let edits: Vec<(&str, &str)> = edits.iter().map(|(a, b)| (*a, b.as_str())).collect();
+    let rig = rig_from(dir.path(), "simulated.toml", &edits);
+    let Some(fs) = Tmpfs::mount(&dir.path().join("state"), "16m") else {
+        eprintln!("skipped: cannot mount a tmpfs here");
+        return;
+    };
+    let state = fs.0.clone();
+    let d = daemon_common::spawn_in(&rig, &state, dir.path());
+    let c = client(&d);
+    wait_for("devices connected", Duration::from_secs(10), || {
+        device_states(&c).iter().all(|(_, st)| st == "connected")
+    });
+    let id =
+        c.post_json("/api/v1/scans", &serde_json::json!({})).expect("start")["id"].as_str().expect("id").to_owned();
+    wait_for("the first frame", Duration::from_secs(30), || {
+        frames_on_disk(&state, &id).iter().any(|f| f == "pos_000.png")
+    });
+    // Nothing more can be written: not the next frame, not meta.json.
+    let filler = fill_completely(&state, "filler");
+    let meta = wait_finished(&c, &id, Duration::from_secs(30));
+    assert_eq!(meta["status"], "failed", "the status served is not the scan's: {meta}");
+    assert!(meta["error"].as_str().unwrap_or("").contains("No space left on device"), "{meta}");
+    let on_disk = |id: &str| -> serde_json::Value {
+        let bytes = std::fs::read(state.join("scans").join(id).join("meta.json")).expect("meta.json");
+        serde_json::from_slice(&bytes).expect("meta.json parses")
+    };
+    // meta.json could not follow (this is what the test is about), but it is intact.
+    assert_eq!(on_disk(&id)["status"], "running");
+
+    // While the disk is full: a resume and a new scan are refused with a JSON 507, and the refused
+    // start leaves no scan directory behind.
+    let r = c.raw("POST", &format!("/api/v1/scans/{id}/resume"), None).expect("resume");
+    assert_eq!(r.status, 507, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json().expect("json")["error"]["code"], "disk_full");
+    assert_eq!(scan_meta_of(&c, &id)["status"], "failed");
+    let r = c.raw("POST", "/api/v1/scans", Some(b"{}")).expect("start");
+    assert_eq!(r.status, 507, "{}", String::from_utf8_lossy(&r.body));
+    for entry in std::fs::read_dir(state.join("scans")).expect("scans").flatten() {
+        assert!(entry.path().join("meta.json").is_file(), "{} has no meta.json", entry.path().display());
+    }
+    assert_eq!(c.get_json("/api/v1/scans").expect("list")["scans"].as_array().map(Vec::len), Some(1));
+
+    // Space freed: meta.json catches up, resume and cancel work.
+    std::fs::remove_file(filler).expect("rm filler");
+    assert_eq!(scan_meta_of(&c, &id)["status"], "failed");
+    assert_eq!(on_disk(&id)["status"], "failed");
+    let r = c.raw("POST", &format!("/api/v1/scans/{id}/resume"), None).expect("resume");
+    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+    let meta = wait_finished(&c, &id, Duration::from_secs(60));
+    assert_eq!(meta["status"], "complete", "{meta}");
+    assert_eq!(on_disk(&id)["status"], "complete");
+    let id2 =
+        c.post_json("/api/v1/scans", &serde_json::json!({})).expect("start")["id"].as_str().expect("id").to_owned();
+    c.post_json(&format!("/api/v1/scans/{id2}/cancel"), &serde_json::json!({})).expect("cancel");
+    assert_eq!(wait_finished(&c, &id2, Duration::from_secs(30))["status"], "cancelled");
+    drop(d);
+    drop(fs);
+}
+
+fn scan_meta_of(c: &scanrig::service::client::Client, id: &str) -> serde_json::Value {
+    c.get_json(&format!("/api/v1/scans/{id}")).expect("scan")["scan"].clone()
+}

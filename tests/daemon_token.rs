@@ -2,6 +2,7 @@
 //! every request needs it. Traffic goes to 127.0.0.1 only (the daemon listens on 0.0.0.0).
 
 use std::io::{BufRead, BufReader};
+use std::os::unix::fs::PermissionsExt;
 use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::Duration;
@@ -32,6 +33,7 @@ fn a_non_loopback_address_needs_a_token_and_every_request_carries_it() {
     // With a token from a file.
     let token_file = dir.path().join("token");
     std::fs::write(&token_file, "s3cret-token\n").expect("write token");
+    std::fs::set_permissions(&token_file, std::fs::Permissions::from_mode(0o600)).expect("chmod");
     let mut child = scanrigd(dir.path())
         .arg("--token-file")
         .arg(&token_file)
@@ -63,6 +65,66 @@ fn a_non_loopback_address_needs_a_token_and_every_request_carries_it() {
     let r = right.raw("GET", "/api/v1/status", None).expect("request");
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
 
+    // The CLI takes the token from a private file or SCANRIG_TOKEN; `--token` is gone.
+    let scanrig = |args: &[&str], env: Option<&str>| {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_scanrig"));
+        c.args(args).args(["--daemon", &addr]).env_remove("SCANRIG_TOKEN");
+        if let Some(t) = env {
+            c.env("SCANRIG_TOKEN", t);
+        }
+        c.stdin(Stdio::null()).output().expect("run scanrig")
+    };
+    let out = scanrig(&["status", "--token", "s3cret-token"], None);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--token"), "{}", String::from_utf8_lossy(&out.stderr));
+    let tf = token_file.to_str().expect("utf8");
+    let out = scanrig(&["status", "--token-file", tf], None);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = scanrig(&["status"], Some("s3cret-token"));
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = scanrig(&["status"], Some("  "));
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("empty"), "{}", String::from_utf8_lossy(&out.stderr));
+
     let _ = child.kill();
     let _ = child.wait();
+}
+
+#[test]
+fn empty_whitespace_and_readable_token_files_and_a_blank_environment_token_are_refused() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let token_file = dir.path().join("token");
+    for (text, mode, why) in [
+        ("", 0o600, "empty"),
+        (" \n\t\n", 0o600, "empty"),
+        ("s3cret-token\n", 0o644, "readable by its group or others"),
+        ("s3cret-token\n", 0o640, "readable by its group or others"),
+    ] {
+        std::fs::write(&token_file, text).expect("write token");
+        std::fs::set_permissions(&token_file, std::fs::Permissions::from_mode(mode)).expect("chmod");
+        let mut child = scanrigd(dir.path())
+            .arg("--token-file")
+            .arg(&token_file)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn scanrigd");
+        let t = std::time::Instant::now();
+        while child.try_wait().expect("wait").is_none() {
+            if t.elapsed() > Duration::from_secs(20) {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!("scanrigd started with a token file {text:?} mode {mode:o}");
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let out = child.wait_with_output().expect("output");
+        assert!(!out.status.success());
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains(why), "{text:?} {mode:o}: {stderr}");
+    }
+    let out = scanrigd(dir.path()).env("SCANRIGD_TOKEN", " \t ").stdin(Stdio::null()).output().expect("run");
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("empty"), "{}", String::from_utf8_lossy(&out.stderr));
 }

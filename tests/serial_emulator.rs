@@ -358,3 +358,117 @@ fn config_fault_knobs_unplug_once_and_replug_by_themselves() {
         table.move_to(deg, MOVE_TIMEOUT).expect("moves after the replug");
     }
 }
+
+/// Reconnect `b`'s controller once the fault is cleared and check that it moves again.
+fn recovers(b: &mut Board, dialect: &str) {
+    let deadline = Instant::now() + Duration::from_secs(5);
+    let mut c = scanrig::devices::serial::controller::lock(&b.opened.controller);
+    if !matches!(c.state(), LinkState::Connected) {
+        c.reconnect(deadline).unwrap_or_else(|e| panic!("{dialect}: no reconnect after the fault: {e}"));
+    }
+    drop(c);
+    // Bytes the fault left in flight may cost the first command (a typed error); by the third the
+    // line is quiet again.
+    let mut last = None;
+    for _ in 0..3 {
+        match b.table.move_to(10.0, MOVE_TIMEOUT) {
+            Ok(_) => return,
+            Err(e) => {
+                assert!(matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol), "{dialect}: {e}");
+                last = Some(e);
+            }
+        }
+    }
+    panic!("{dialect}: no move after the fault: {last:?}");
+}
+
+#[test]
+fn a_board_streaming_garbage_for_ever_gives_a_typed_error_and_bounded_buffers() {
+    for dialect in ["scanrig", "horus", "fabscan"] {
+        let mut b = board(dialect, "");
+        b.table.move_to(0.0, MOVE_TIMEOUT).unwrap_or_else(|e| panic!("{dialect}: connect: {e}"));
+        let f = faults(&b);
+        f.garbage_stream.store(true, Ordering::SeqCst);
+        let err = b.table.move_to(90.0, MOVE_TIMEOUT).expect_err("no reply can get through the garbage");
+        eprintln!("{dialect}: garbage for ever -> {:?}: {err}", err.kind());
+        assert!(matches!(err.kind(), ErrorKind::Timeout | ErrorKind::Protocol), "{dialect}: {err}");
+        if dialect == "fabscan" {
+            // The prompt reader stops at its size cap instead of buffering until the deadline.
+            let text = scanrig::service::rig::error_chain(&err);
+            assert!(text.contains("bytes without the `>` prompt"), "{text}");
+        }
+        f.garbage_stream.store(false, Ordering::SeqCst);
+        recovers(&mut b, dialect);
+    }
+}
+
+#[test]
+fn replies_that_trickle_without_a_line_break_time_out() {
+    for dialect in ["scanrig", "horus", "fabscan"] {
+        let mut b = board(dialect, "");
+        b.table.move_to(0.0, MOVE_TIMEOUT).unwrap_or_else(|e| panic!("{dialect}: connect: {e}"));
+        let f = faults(&b);
+        f.trickle.store(true, Ordering::SeqCst);
+        let err = b.lights.set_laser(0, true, T).expect_err("a reply that never ends");
+        eprintln!("{dialect}: trickle -> {:?}: {err}", err.kind());
+        assert!(matches!(err.kind(), ErrorKind::Timeout | ErrorKind::Protocol), "{dialect}: {err}");
+        f.trickle.store(false, Ordering::SeqCst);
+        recovers(&mut b, dialect);
+    }
+}
+
+#[test]
+fn an_overlong_line_before_a_reply_is_dropped_or_refused_never_buffered_whole() {
+    for dialect in ["scanrig", "horus", "fabscan"] {
+        let mut b = board(dialect, "");
+        b.table.move_to(0.0, MOVE_TIMEOUT).unwrap_or_else(|e| panic!("{dialect}: connect: {e}"));
+        let f = faults(&b);
+        f.overlong_replies.store(1, Ordering::SeqCst);
+        let result = b.lights.set_laser(0, true, T);
+        eprintln!("{dialect}: a {} byte line -> {result:?}", scanrig::devices::serial::emulator::OVERLONG_LINE);
+        assert_eq!(f.overlong_replies.load(Ordering::SeqCst), 0, "{dialect}: the line was sent");
+        match dialect {
+            // Line-based dialects skip the overlong line (resending where the dialect allows).
+            "scanrig" | "horus" => result.unwrap_or_else(|e| panic!("{dialect}: {e}")),
+            // FabScan has no lines, only a prompt: the cap refuses it as a protocol error.
+            _ => {
+                let err = result.expect_err("over the prompt reader's cap");
+                assert_eq!(err.kind(), ErrorKind::Protocol, "{err}");
+            }
+        }
+        recovers(&mut b, dialect);
+    }
+}
+
+#[test]
+fn field_dialects_dropped_and_corrupted_replies_are_bounded_typed_errors() {
+    for dialect in ["horus", "fabscan"] {
+        for knob in ["drop", "corrupt"] {
+            let mut b = board(dialect, "");
+            b.table.move_to(0.0, MOVE_TIMEOUT).unwrap_or_else(|e| panic!("{dialect}: connect: {e}"));
+            let f = faults(&b);
+            let counter = if knob == "drop" { &f.drop_replies } else { &f.corrupt_replies };
+            counter.store(1, Ordering::SeqCst);
+            let result = b.lights.set_laser(0, true, T);
+            assert_eq!(counter.load(Ordering::SeqCst), 0, "{dialect} {knob}: the fault was applied");
+            eprintln!("{dialect}: {knob}ped reply -> {result:?}");
+            if let Err(e) = &result {
+                assert!(matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol), "{dialect} {knob}: {e}");
+            }
+            recovers(&mut b, dialect);
+        }
+    }
+}
+
+#[test]
+fn horus_port_vanishing_in_the_middle_of_a_read_is_a_disconnect() {
+    let mut b = board("horus", "");
+    // The cable goes when the second motion command arrives, while the host waits for its reply.
+    faults(&b).unplug_at_move.store(2, Ordering::SeqCst);
+    let (captured, result) = scan(&mut b, 4);
+    let err = result.expect_err("unplugged mid-read");
+    assert_eq!(err.kind(), ErrorKind::Disconnected, "{err}");
+    assert_eq!(captured.len(), 1);
+    faults(&b).replug();
+    recovers(&mut b, "horus");
+}

@@ -75,6 +75,9 @@ enum Command {
         /// Output directory (created if missing).
         #[arg(long)]
         out: PathBuf,
+        /// Replace an existing result (a `report.json`) in `--out`.
+        #[arg(long)]
+        force: bool,
     },
     /// Reconstruct a stored scan again (`--scan DIR`: any method its views serve, other settings;
     /// no hardware), or a calibrated image set on disk (`--dataset DIR`: Middlebury `*_par.txt` or a
@@ -249,14 +252,18 @@ struct DaemonArgs {
     /// Daemon address, host:port.
     #[arg(long, default_value = "127.0.0.1:8470")]
     daemon: String,
-    /// Bearer token, when the daemon needs one (else the SCANRIG_TOKEN environment variable).
+    /// File holding the bearer token, readable by its owner only, when the daemon needs one (else
+    /// the SCANRIG_TOKEN environment variable). There is no `--token`: `ps` would show it.
     #[arg(long)]
-    token: Option<String>,
+    token_file: Option<PathBuf>,
 }
 
 impl DaemonArgs {
     fn client(&self) -> anyhow::Result<Client> {
-        let token = self.token.clone().or_else(|| std::env::var("SCANRIG_TOKEN").ok().filter(|t| !t.is_empty()));
+        let token = match &self.token_file {
+            Some(p) => Some(scanrig::service::token::from_file(p)?),
+            None => scanrig::service::token::from_env("SCANRIG_TOKEN")?,
+        };
         Ok(Client::new(&self.daemon, token)?)
     }
 }
@@ -529,7 +536,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             }
             Ok(())
         }
-        Command::Scan { rig, out } => {
+        Command::Scan { rig, out, force } => {
+            if !force && out.join("report.json").exists() {
+                anyhow::bail!("{} holds a scan result (report.json); pass --force to replace it", out.display());
+            }
             let config = scanrig::rigfile::load(&rig)?;
             let total = config.scan.positions as u64;
             let mut reporter = Reporter::new(total);

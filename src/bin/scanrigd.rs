@@ -21,7 +21,8 @@ struct Args {
     /// Where scans are stored.
     #[arg(long, default_value = "/var/lib/scanrig")]
     state_dir: PathBuf,
-    /// File holding the bearer token (else the SCANRIGD_TOKEN environment variable).
+    /// File holding the bearer token, readable by its owner only (else the SCANRIGD_TOKEN
+    /// environment variable). An empty token is refused.
     #[arg(long)]
     token_file: Option<PathBuf>,
     /// Seconds allowed for shutdown (stop the scan, park the rig).
@@ -44,11 +45,10 @@ fn main() -> ExitCode {
 }
 
 fn run(args: Args) -> anyhow::Result<()> {
+    // A token file must be private and non-empty; so must the environment token.
     let token = match &args.token_file {
-        Some(p) => {
-            Some(std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?.trim().to_owned())
-        }
-        None => std::env::var("SCANRIGD_TOKEN").ok().filter(|t| !t.is_empty()),
+        Some(p) => Some(scanrig::service::token::from_file(p)?),
+        None => scanrig::service::token::from_env("SCANRIGD_TOKEN")?,
     };
     if !args.shutdown_deadline.is_finite() || args.shutdown_deadline <= 0.0 {
         anyhow::bail!("--shutdown-deadline must be a positive number of seconds");

@@ -90,20 +90,19 @@ pub fn parse(text: &str, path: &Path) -> Result<RigConfig, ConfigError> {
 }
 
 /// Parse rig-file text and check its values plus the problems `more` finds (a higher layer's, e.g.
-/// the drivers' checks of their settings), all reported at once with their lines.
+/// the drivers' checks of their settings), all reported at once with their lines: every unknown key
+/// and misspelled section first, then the values.
 pub fn parse_with(
     text: &str,
     path: &Path,
     more: impl FnOnce(&RigConfig) -> Vec<Problem>,
 ) -> Result<RigConfig, ConfigError> {
-    let config: RigConfig = toml::from_str(text).map_err(|e| {
-        let (line, column) = e.span().map(|s| line_col(text, s.start)).unwrap_or((1, 1));
-        ConfigError::Parse { path: path.to_owned(), line, column, message: e.message().trim().to_owned() }
-    })?;
-    let mut problems = config.validate();
-    problems.extend(more(&config));
+    let (config, mut problems) = deserialize_all(text, path)?;
+    let mut values = config.validate();
+    values.extend(more(&config));
+    locate(text, &mut values);
+    problems.extend(values);
     if !problems.is_empty() {
-        locate(text, &mut problems);
         return Err(ConfigError::Invalid { path: path.to_owned(), problems });
     }
     Ok(config)
@@ -114,6 +113,215 @@ pub fn line_of(text: &str, key: &str) -> Option<usize> {
     let mut p = [Problem { key: key.into(), line: None, message: String::new() }];
     locate(text, &mut p);
     p[0].line
+}
+
+/// Deserialize the rig file, reporting every unknown key and misspelled section at once: each
+/// unknown key found is recorded with its line and commented out (line numbers stay the same),
+/// and the file is parsed again, up to [`MAX_UNKNOWN`] times. A misspelled section header takes
+/// its whole section with it, so the missing section it leaves is reported too, after it.
+fn deserialize_all(text: &str, path: &Path) -> Result<(RigConfig, Vec<Problem>), ConfigError> {
+    let mut working: Vec<String> = text.split('\n').map(str::to_owned).collect();
+    let mut problems: Vec<Problem> = Vec::new();
+    // Unknown top-level keys and sections first: the parser reads sections in name order and may
+    // stop at a missing field of a section a misspelled header leaves behind before it gets to them.
+    let known = top_level_fields();
+    if let (Ok(doc), false) = (toml_edit::Document::parse(text), known.is_empty()) {
+        for (key, _) in doc.as_table().iter() {
+            if known.iter().any(|k| k == key) {
+                continue;
+            }
+            let Some(span) = doc.as_table().get_key_value(key).and_then(|(k, _)| k.span()) else { continue };
+            let line = line_col(text, span.start).0;
+            let message = format!("unknown section or key `{key}`, expected one of {}", known.join(", "));
+            // Its own lines, and every `[key.sub]` section under it.
+            let mut cut = Vec::new();
+            if let Some((first, last, _)) = find_unknown(&working, line, key) {
+                cut.push((first, last));
+            }
+            for (i, l) in working.iter().enumerate() {
+                let t = l.trim();
+                if t.starts_with('[') && t.trim_start_matches('[').starts_with(&format!("{key}.")) {
+                    let end =
+                        (i + 1..working.len()).find(|&j| working[j].trim().starts_with('[')).unwrap_or(working.len());
+                    cut.push((i, end - 1));
+                }
+            }
+            for (first, last) in cut {
+                for l in &mut working[first..=last] {
+                    if !l.starts_with('#') {
+                        l.insert(0, '#');
+                    }
+                }
+            }
+            problems.push(Problem { key: key.to_owned(), line: Some(line), message });
+        }
+    }
+    // Then unknown keys inside each section, section by section, so that a missing field in one
+    // section does not hide an unknown key in another.
+    for name in &known {
+        section_unknowns(&mut working, name, &mut problems);
+    }
+    for _ in 0..=MAX_UNKNOWN {
+        let joined = working.join("\n");
+        let e = match toml::from_str::<RigConfig>(&joined) {
+            // With the unknown keys left out, the values are checked too.
+            Ok(config) => return Ok((config, problems)),
+            Err(e) => e,
+        };
+        let (line, column) = e.span().map(|s| line_col(&joined, s.start)).unwrap_or((1, 1));
+        let message = e.message().trim().to_owned();
+        let unknown =
+            message.strip_prefix("unknown field `").and_then(|m| m.split_once('`')).map(|(field, _)| field.to_owned());
+        if let Some((first, last, key)) = unknown.as_deref().and_then(|f| find_unknown(&working, line, f)) {
+            problems.push(Problem { key, line: Some(first + 1), message });
+            for l in &mut working[first..=last] {
+                l.insert(0, '#');
+            }
+            continue;
+        }
+        if problems.is_empty() {
+            return Err(ConfigError::Parse { path: path.to_owned(), line, column, message });
+        }
+        // What the earlier problems left (a missing section, a syntax error): reported after them.
+        let key = section_of(&working, line.saturating_sub(1)).unwrap_or_default();
+        problems.push(Problem { key, line: Some(line), message: format!("{message} (column {column})") });
+        return Err(ConfigError::Invalid { path: path.to_owned(), problems });
+    }
+    Err(ConfigError::Invalid { path: path.to_owned(), problems })
+}
+
+/// Deserialize section `name` of the (partly commented-out) file on its own and record each of its
+/// unknown keys (commenting it out and going on). Other errors are left for the whole-file parse.
+fn section_unknowns(working: &mut [String], name: &str, problems: &mut Vec<Problem>) {
+    fn probe<T: serde::de::DeserializeOwned>(v: toml::Value) -> Option<String> {
+        let e = T::deserialize(v).err()?;
+        let m = e.message().trim().to_owned();
+        m.starts_with("unknown field `").then_some(m)
+    }
+    for _ in 0..MAX_UNKNOWN {
+        let Ok(table) = toml::from_str::<toml::Table>(&working.join("\n")) else { return };
+        let Some(v) = table.get(name).cloned() else { return };
+        let message = match name {
+            "rig" => probe::<RigSection>(v),
+            "turntable" => probe::<TurntableConfig>(v),
+            "lights" => probe::<LightsConfig>(v),
+            "camera" => probe::<CameraConfig>(v),
+            "projector" => probe::<ProjectorConfig>(v),
+            "depth_camera" => probe::<DepthCameraConfig>(v),
+            "controller" => probe::<ControllerConfig>(v),
+            "sim" => probe::<SimConfig>(v),
+            "scan" => probe::<ScanPlan>(v),
+            "reconstruction" => probe::<ReconstructionConfig>(v),
+            _ => None,
+        };
+        let Some(message) = message else { return };
+        let Some(field) = message.strip_prefix("unknown field `").and_then(|m| m.split_once('`')).map(|(f, _)| f)
+        else {
+            return;
+        };
+        // The first live line in this section (or its subsections) that is the key or a header for it.
+        let in_section = |i: usize| {
+            section_of(working, i).is_some_and(|s| {
+                let s = s.trim_start_matches('[').trim();
+                s == name || s.starts_with(&format!("{name}."))
+            })
+        };
+        let hit = (0..working.len())
+            .filter(|&i| !working[i].trim_start().starts_with('#') && in_section(i))
+            .find_map(|i| find_unknown(working, i + 1, field).filter(|(first, _, _)| *first == i));
+        let Some((first, last, key)) = hit else { return };
+        let key = if key.starts_with(name) { key } else { format!("{name}.{key}") };
+        problems.push(Problem { key, line: Some(first + 1), message });
+        for l in &mut working[first..=last] {
+            l.insert(0, '#');
+        }
+    }
+}
+
+/// The top-level keys of a rig file, as the parser itself lists them for an unknown one (so the
+/// list cannot drift from the schema).
+fn top_level_fields() -> Vec<String> {
+    let Err(e) = toml::from_str::<RigConfig>("unknown_key_probe = 1") else { return Vec::new() };
+    let message = e.message().to_owned();
+    let Some((_, list)) = message.split_once("expected one of ") else { return Vec::new() };
+    list.split(',').map(|f| f.trim().trim_matches('`').to_owned()).filter(|f| !f.is_empty()).collect()
+}
+
+/// How many unknown keys one report names at most.
+pub const MAX_UNKNOWN: usize = 64;
+
+/// The lines (0-based, inclusive) to comment out for the unknown `field` the parser reported at
+/// 1-based `line`, and its dotted key: the key's line (and the lines its value continues on), or
+/// a whole section when `field` is a misspelled section header. The parser points at the key
+/// itself, or at the start of a section that is read as a whole (sections tagged by `kind`).
+fn find_unknown(lines: &[String], line: usize, field: &str) -> Option<(usize, usize, String)> {
+    let start = line.checked_sub(1)?;
+    let is_key = |l: &str| {
+        let t = l.trim_start();
+        let rest = t.strip_prefix(field).or_else(|| t.strip_prefix(&format!("\"{field}\"")));
+        rest.is_some_and(|r| {
+            let r = r.trim_start();
+            r.starts_with('=') || r.starts_with('.')
+        })
+    };
+    let header = |l: &str| {
+        let t = l.trim();
+        (t.starts_with('[') && !t.starts_with("#")).then(|| t.trim_matches(|c| c == '[' || c == ']').trim().to_owned())
+    };
+    // A header naming `field`: the whole section (up to the next header) goes.
+    if let Some(name) = lines.get(start).and_then(|l| header(l)) {
+        if name == field || name.ends_with(&format!(".{field}")) {
+            let end = (start + 1..lines.len()).find(|&i| header(&lines[i]).is_some()).map_or(lines.len(), |i| i) - 1;
+            return Some((start, end, name));
+        }
+    }
+    // Otherwise the key, at that line or further down in the same section.
+    let mut i = start;
+    while i < lines.len() {
+        if i > start && header(&lines[i]).is_some() {
+            break;
+        }
+        if !lines[i].trim_start().starts_with('#') && is_key(&lines[i]) {
+            let end = value_end(lines, i);
+            let key = match section_of(lines, i) {
+                Some(s) if !s.is_empty() => format!("{s}.{field}"),
+                _ => field.to_owned(),
+            };
+            return Some((i, end, key));
+        }
+        i += 1;
+    }
+    None
+}
+
+/// The last line of the value that starts on line `i`: brackets and braces opened there are
+/// closed (multi-line arrays and inline tables), or it is the same line.
+fn value_end(lines: &[String], i: usize) -> usize {
+    let mut depth: i64 = 0;
+    let mut in_str = false;
+    for (k, l) in lines.iter().enumerate().skip(i) {
+        for c in l.chars() {
+            match c {
+                '"' => in_str = !in_str,
+                '#' if !in_str => break,
+                '[' | '{' if !in_str => depth += 1,
+                ']' | '}' if !in_str => depth -= 1,
+                _ => {}
+            }
+        }
+        if depth <= 0 {
+            return k;
+        }
+    }
+    lines.len() - 1
+}
+
+/// The name of the section (table header) line `i` (0-based) is in.
+fn section_of(lines: &[String], i: usize) -> Option<String> {
+    lines[..=i.min(lines.len().saturating_sub(1))].iter().rev().find_map(|l| {
+        let t = l.trim();
+        t.starts_with('[').then(|| t.trim_matches(|c| c == '[' || c == ']').trim().to_owned())
+    })
 }
 
 fn line_col(text: &str, offset: usize) -> (usize, usize) {
@@ -149,7 +357,57 @@ fn key_span(table: &dyn toml_edit::TableLike, parts: &[&str]) -> Option<std::ops
     deeper.or(here)
 }
 
+const MIB: u64 = 1024 * 1024;
+
+/// What a scan with this rig file holds in memory at its peak, estimated from the grid and the
+/// frames (an upper bound of the big buffers; small ones are ignored). Bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MemoryEstimate {
+    /// Voxels of the grid over the working volume.
+    pub voxels: u64,
+    /// The method's per-voxel buffers, bytes.
+    pub grid_bytes: u64,
+    /// Frames and their per-pixel buffers kept for the reconstruction, bytes.
+    pub frame_bytes: u64,
+}
+
+impl MemoryEstimate {
+    /// Grid plus frames, bytes.
+    pub fn total(&self) -> u64 {
+        self.grid_bytes.saturating_add(self.frame_bytes)
+    }
+}
+
 impl RigConfig {
+    /// Estimate the memory of a scan: the grid's voxels times the bytes the method keeps per voxel
+    /// (space carving 12 B: measured peak RSS of `scanrig scan` on the simulated rig grows by
+    /// 11.7 B a voxel from resolution 128 to 256; shadow carving 13 B (a dense byte more); photo
+    /// methods and depth fusion 20 B (colours or TSDF value and weight on top); laser and structured
+    /// light 28 B (free-space labels, distances, components, TSDF)),
+    /// plus every frame kept: camera pixels x (RGB + mask + a u32 summed-area table) = 8 B a pixel,
+    /// per position (and per shadow light for shadow carving).
+    pub fn memory_estimate(&self) -> MemoryEstimate {
+        let r = &self.reconstruction;
+        let grid = crate::geometry::VoxelGrid::from_resolution(&r.bbox(), r.resolution);
+        let voxels = grid.dims.iter().fold(1u64, |a, &d| a.saturating_mul(d as u64));
+        let per_voxel = match r.method {
+            Method::SpaceCarving => 12,
+            Method::ShadowCarving => 13,
+            Method::VoxelColoring | Method::SpaceCarvingPhoto => 20,
+            Method::DepthFusion => 20,
+            Method::Laser | Method::StructuredLight => 28,
+        };
+        let (w, h) = match &self.camera {
+            CameraConfig::Sim(c) => (c.width, c.height),
+            CameraConfig::V4l2(c) | CameraConfig::Uvc(c) => (c.width, c.height),
+            CameraConfig::Genicam(c) => (c.width, c.height),
+        };
+        let lightings = 1 + if r.method == Method::ShadowCarving { self.scan.shadow_lights.len() as u64 } else { 0 };
+        let frames = u64::from(self.scan.positions).saturating_mul(lightings);
+        let frame_bytes = frames.saturating_mul(u64::from(w) * u64::from(h) * 8);
+        MemoryEstimate { voxels, grid_bytes: voxels.saturating_mul(per_voxel), frame_bytes }
+    }
+
     /// Checks of `[controller]` and of the devices that use it.
     fn validate_controller(&self, bad: &mut dyn FnMut(&str, String)) {
         let serial_turntable = matches!(self.turntable, TurntableConfig::Serial(_));
@@ -395,12 +653,16 @@ impl RigConfig {
         if !plan.start_deg.is_finite() {
             bad("scan.start_deg", "must be finite".into());
         }
-        for (i, &l) in plan.lights.iter().enumerate() {
-            if l >= light_count {
-                bad(
-                    &format!("scan.lights.{i}"),
-                    format!("light {l} does not exist: the rig has {light_count} light(s)"),
-                );
+        if plan.lights.len() > 64 {
+            bad("scan.lights", format!("at most 64 entries (one per light switched on), got {}", plan.lights.len()));
+        } else {
+            for (i, &l) in plan.lights.iter().enumerate() {
+                if l >= light_count {
+                    bad(
+                        &format!("scan.lights.{i}"),
+                        format!("light {l} is not one of the rig's lights: the rig has {light_count} light(s)"),
+                    );
+                }
             }
         }
         for (i, &l) in plan.shadow_lights.iter().enumerate() {
@@ -445,6 +707,24 @@ impl RigConfig {
         }
         if r.resolution < 2 || r.resolution > 4096 {
             bad("reconstruction.resolution", format!("must be between 2 and 4096 voxels, got {}", r.resolution));
+        } else if r.bbox().is_valid() {
+            let m = self.memory_estimate();
+            let budget = r.memory_budget_mb.saturating_mul(MIB);
+            if m.total() > budget {
+                bad(
+                    "reconstruction.resolution",
+                    format!(
+                        "resolution {} needs about {} MB (grid {} MB for {} voxels, frames {} MB), above the memory \
+                         budget of {} MB (`reconstruction.memory_budget_mb`): lower the resolution or raise the budget",
+                        r.resolution,
+                        m.total() / MIB,
+                        m.grid_bytes / MIB,
+                        m.voxels,
+                        m.frame_bytes / MIB,
+                        r.memory_budget_mb
+                    ),
+                );
+            }
         }
         let s = &r.silhouette;
         if !(s.threshold.is_finite() && (0.0..1.0).contains(&s.threshold)) {

@@ -805,6 +805,14 @@ pub struct ReconstructionConfig {
     /// `[reconstruction.structured_light]` (method `structured-light`).
     #[serde(default)]
     pub structured_light: crate::config::structured_light::StructuredLightConfig,
+    /// Memory a scan may need, megabytes (MiB): `validate` refuses a rig whose estimate (see
+    /// [`crate::config::MemoryEstimate`]) is above it. Default 2048, for a small box.
+    #[serde(default = "default_memory_budget_mb")]
+    pub memory_budget_mb: u64,
+}
+
+fn default_memory_budget_mb() -> u64 {
+    2048
 }
 
 /// `[reconstruction.depth_fusion]`: the TSDF of method `depth-fusion`.

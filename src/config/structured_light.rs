@@ -418,7 +418,8 @@ mod tests {
         let without = format!("{}{}", &text[..start], &text[end..]);
         assert!(problems(&without).iter().any(|(k, _)| k == "projector"), "{:?}", problems(&without));
         let typo = text.replace("subpixel = true", "sub_pixel = true");
-        assert!(matches!(parse(&typo, Path::new("rig.toml")), Err(ConfigError::Parse { .. })));
+        let err = parse(&typo, Path::new("rig.toml")).expect_err("unknown key");
+        assert!(matches!(err, ConfigError::Invalid { .. }) && err.to_string().contains("sub_pixel"), "{err}");
     }
 
     fn shipped_phase() -> String {

@@ -80,13 +80,17 @@ fn unknown_key_is_reported_with_its_line() {
     let err = parse(&text, Path::new("rig.toml")).expect_err("unknown key");
     let line = text.lines().position(|l| l.starts_with("positoins")).expect("line") + 1;
     match &err {
-        ConfigError::Parse { line: l, message, .. } => {
-            assert_eq!(*l, line, "{err}");
-            assert!(message.contains("positoins"), "{message}");
+        ConfigError::Invalid { problems, .. } => {
+            assert!(
+                problems
+                    .iter()
+                    .any(|p| p.line == Some(line) && p.key == "scan.positoins" && p.message.contains("positoins")),
+                "{err}"
+            );
         }
-        other => panic!("expected a parse error, got {other}"),
+        other => panic!("expected the unknown key as a problem, got {other}"),
     }
-    assert!(err.to_string().starts_with(&format!("rig.toml:{line}:")), "{err}");
+    assert!(err.to_string().contains(&format!("rig.toml:line {line}: `scan.positoins`")), "{err}");
 }
 
 #[test]
@@ -126,4 +130,51 @@ fn bad_toml_syntax_names_file_and_line() {
     let err = parse(&text, Path::new("broken.toml")).expect_err("syntax");
     let line = text.lines().position(|l| l.contains("= = 4")).expect("line") + 1;
     assert!(err.to_string().starts_with(&format!("broken.toml:{line}:")), "{err}");
+}
+
+#[test]
+fn every_unknown_key_and_a_misspelled_section_are_reported_at_once_with_their_lines() {
+    let text =
+        std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/simulated.toml"))
+            .expect("rig");
+    let text = text
+        .replacen("[scan]\n", "[scan]\npositons = 3\n", 1)
+        .replacen("[camera]\nkind = \"sim\"\n", "[camera]\nkind = \"sim\"\nwidht = 10\n", 1)
+        .replacen("[reconstruction]\n", "[reconstuction]\n", 1)
+        .replacen("[sim]\n", "[sim]\ncolour = [\n  1,\n  2,\n]\n", 1);
+    let line_of = |needle: &str| {
+        text.lines().position(|l| l == needle || l.starts_with(&format!("{needle} = "))).expect("needle") + 1
+    };
+    let err = crate::config::parse(&text, std::path::Path::new("rig.toml")).expect_err("invalid");
+    let crate::config::ConfigError::Invalid { problems, .. } = &err else { panic!("{err}") };
+    let found: Vec<(String, Option<usize>)> = problems.iter().map(|p| (p.key.clone(), p.line)).collect();
+    for (key, line) in [
+        ("scan.positons", line_of("positons")),
+        ("camera.widht", line_of("widht")),
+        ("reconstuction", line_of("[reconstuction]")),
+        ("sim.colour", line_of("colour = [")),
+    ] {
+        assert!(found.contains(&(key.to_owned(), Some(line))), "{key} at line {line} not in {found:?}\n{err}");
+    }
+    // The sections under the misspelled header are left without the fields it held.
+    assert!(err.to_string().contains("missing field `method`"), "{err}");
+}
+
+#[test]
+fn a_grid_above_the_memory_budget_is_refused_with_the_estimate() {
+    let text =
+        std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/simulated.toml"))
+            .expect("rig");
+    let huge = text.replacen("resolution = 128", "resolution = 4096", 1);
+    let err = crate::config::parse(&huge, std::path::Path::new("rig.toml")).expect_err("refused");
+    let msg = err.to_string();
+    assert!(
+        msg.contains("reconstruction.resolution") && msg.contains("memory_budget_mb") && msg.contains(" MB"),
+        "{msg}"
+    );
+    // A budget raised far enough lets it through; the shipped resolution is well inside the default.
+    let raised = huge.replacen("[reconstruction]\n", "[reconstruction]\nmemory_budget_mb = 100000000\n", 1);
+    crate::config::parse(&raised, std::path::Path::new("rig.toml")).expect("raised budget");
+    let ok = crate::config::parse(&text, std::path::Path::new("rig.toml")).expect("shipped rig");
+    assert!(ok.memory_estimate().total() < 2048 * 1024 * 1024);
 }

@@ -58,6 +58,19 @@ pub enum DatasetError {
         /// The missing image.
         path: PathBuf,
     },
+    /// An image listed in the calibration file exists but is not a regular file (a device such as
+    /// `/dev/zero`, a directory or a pipe), which would never decode or never end.
+    #[error("{calibration}:{line}: image {path} is not a regular file ({kind})")]
+    NotAFile {
+        /// The calibration file.
+        calibration: PathBuf,
+        /// Line of the entry.
+        line: usize,
+        /// The image path.
+        path: PathBuf,
+        /// What it is instead.
+        kind: &'static str,
+    },
     /// A line has the wrong number of values.
     #[error("{path}:{line}: expected {expected} values, found {found}")]
     ValueCount {
@@ -482,12 +495,36 @@ pub fn load(opts: &DatasetOptions) -> Result<Dataset, DatasetError> {
             let image_path = opts.dir.join(&cal.name);
             let need_image = opts.load_images || matches!(opts.masks, MaskSource::Extract(_));
             let image = if need_image {
-                if !image_path.is_file() {
-                    return Err(DatasetError::MissingImage {
-                        calibration: cal_path.clone(),
-                        line: cal.line,
-                        path: image_path,
-                    });
+                match std::fs::metadata(&image_path) {
+                    Ok(m) if m.is_file() => {}
+                    Ok(m) => {
+                        use std::os::unix::fs::FileTypeExt;
+                        let t = m.file_type();
+                        let kind = if t.is_dir() {
+                            "a directory"
+                        } else if t.is_char_device() || t.is_block_device() {
+                            "a device"
+                        } else if t.is_fifo() {
+                            "a pipe"
+                        } else if t.is_socket() {
+                            "a socket"
+                        } else {
+                            "not a plain file"
+                        };
+                        return Err(DatasetError::NotAFile {
+                            calibration: cal_path.clone(),
+                            line: cal.line,
+                            path: image_path,
+                            kind,
+                        });
+                    }
+                    Err(_) => {
+                        return Err(DatasetError::MissingImage {
+                            calibration: cal_path.clone(),
+                            line: cal.line,
+                            path: image_path,
+                        })
+                    }
                 }
                 Some(load_rgb(&image_path)?)
             } else {

@@ -82,6 +82,7 @@ impl From<JobError> for ApiError {
             JobError::WrongState { .. } => ApiError::new(StatusCode::CONFLICT, "wrong_state", msg),
             JobError::StoredConfig { .. } => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "stored_config", msg),
             JobError::Store(StoreError::NotFound(_)) => ApiError::new(StatusCode::NOT_FOUND, "not_found", msg),
+            JobError::Store(e) if e.is_disk_full() => ApiError::new(StatusCode::INSUFFICIENT_STORAGE, "disk_full", msg),
             JobError::Store(_) => ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "store", msg),
         }
     }
@@ -122,12 +123,67 @@ pub fn router(state: AppState) -> Router {
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "not_found", "no such route") })
         .layer(axum::middleware::from_fn_with_state(state.clone(), guard))
         .layer(DefaultBodyLimit::max(MAX_BODY))
+        .layer(axum::middleware::from_fn(json_errors))
         .with_state(state)
+}
+
+/// Turns every error answer that is not JSON yet (extractor rejections such as a path that is
+/// not UTF-8, 405 Method Not Allowed) into the API's JSON error shape.
+async fn json_errors(req: Request, next: Next) -> Response {
+    let res = next.run(req).await;
+    let status = res.status();
+    let is_json = res
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/json"));
+    if !(status.is_client_error() || status.is_server_error()) || is_json {
+        return res;
+    }
+    let code = match status {
+        StatusCode::BAD_REQUEST => "bad_request",
+        StatusCode::NOT_FOUND => "not_found",
+        StatusCode::METHOD_NOT_ALLOWED => "method_not_allowed",
+        StatusCode::PAYLOAD_TOO_LARGE => "too_large",
+        StatusCode::UNSUPPORTED_MEDIA_TYPE => "unsupported_media_type",
+        _ if status.is_client_error() => "bad_request",
+        _ => "internal",
+    };
+    let (parts, body) = res.into_parts();
+    let text = axum::body::to_bytes(body, MAX_BODY).await.unwrap_or_default();
+    let mut message = String::from_utf8_lossy(&text).trim().to_owned();
+    if message.is_empty() {
+        message = status.canonical_reason().unwrap_or("error").to_ascii_lowercase();
+    }
+    let mut out = ApiError::new(status, code, message).into_response();
+    if let Some(allow) = parts.headers.get(header::ALLOW) {
+        out.headers_mut().insert(header::ALLOW, allow.clone());
+    }
+    out
 }
 
 /// Counts requests and checks the bearer token.
 async fn guard(State(state): State<AppState>, req: Request, next: Next) -> Response {
     state.metrics.http_requests.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    // A body announced larger than any route accepts is refused before a byte of it is read.
+    let announced = req.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).map(str::parse::<u64>);
+    match announced {
+        Some(Ok(n)) if n > MAX_BODY as u64 => {
+            let mut res = ApiError::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                "too_large",
+                format!("the request body ({n} bytes) is larger than {MAX_BODY} bytes"),
+            )
+            .into_response();
+            res.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
+            return res;
+        }
+        Some(Err(_)) => {
+            return ApiError::new(StatusCode::BAD_REQUEST, "bad_request", "Content-Length is not a number")
+                .into_response();
+        }
+        _ => {}
+    }
     if let Some(token) = &state.token {
         let given = req
             .headers()
@@ -142,8 +198,15 @@ async fn guard(State(state): State<AppState>, req: Request, next: Next) -> Respo
     next.run(req).await
 }
 
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+/// Whether `given` equals `secret`, in a time that depends only on `secret`'s length (never on
+/// where the first difference is, nor on `given`'s length).
+pub fn constant_time_eq(given: &[u8], secret: &[u8]) -> bool {
+    let mut diff = u8::from(given.len() != secret.len());
+    for (i, s) in secret.iter().enumerate() {
+        let g = given.get(i).copied().unwrap_or(!s);
+        diff |= g ^ s;
+    }
+    std::hint::black_box(diff) == 0
 }
 
 async fn status(State(s): State<AppState>) -> Json<serde_json::Value> {
@@ -269,9 +332,11 @@ async fn scan_file(State(s): State<AppState>, Path((id, path)): Path<(String, St
     }
     s.jobs.store().get(&id)?;
     let file = s.jobs.store().dir(&id).join(&path);
-    let bytes = tokio::fs::read(&file)
-        .await
-        .map_err(|_| ApiError::new(StatusCode::NOT_FOUND, "not_found", format!("scan {id} has no {path} (yet)")))?;
+    // Streamed in 64 KiB chunks: memory per download is bounded whatever the file's size.
+    let missing = || ApiError::new(StatusCode::NOT_FOUND, "not_found", format!("scan {id} has no {path} (yet)"));
+    let f = tokio::fs::File::open(&file).await.map_err(|_| missing())?;
+    let len = f.metadata().await.map_err(|_| missing())?.len();
+    let body = axum::body::Body::from_stream(tokio_util::io::ReaderStream::with_capacity(f, 64 * 1024));
     let mime = match path.rsplit('.').next() {
         Some("png") => "image/png",
         Some("json") => "application/json",
@@ -279,7 +344,11 @@ async fn scan_file(State(s): State<AppState>, Path((id, path)): Path<(String, St
         Some("stl") => "model/stl",
         _ => "application/octet-stream",
     };
-    Ok(([(header::CONTENT_TYPE, HeaderValue::from_static(mime))], bytes).into_response())
+    Ok((
+        [(header::CONTENT_TYPE, HeaderValue::from_static(mime)), (header::CONTENT_LENGTH, HeaderValue::from(len))],
+        body,
+    )
+        .into_response())
 }
 
 async fn events(State(s): State<AppState>) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
@@ -317,13 +386,14 @@ async fn preview(State(s): State<AppState>) -> Result<Response, ApiError> {
             None => Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "busy", "no frame captured yet")),
         };
     }
-    match tokio::time::timeout(Duration::from_secs(10), s.rig.preview()).await {
-        Ok(Ok(png)) => Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response()),
+    let answer = tokio::time::timeout(Duration::from_secs(10), s.rig.preview()).await;
+    match answer.as_ref().map(|r| r.as_ref().map_err(RigError::inner)) {
+        Ok(Ok(png)) => Ok(([(header::CONTENT_TYPE, "image/png")], png.clone()).into_response()),
         Ok(Err(RigError::Busy)) => Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "busy", "the rig is busy")),
         Ok(Err(e @ RigError::NotConnected)) => {
-            Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "disconnected", error_chain(&e)))
+            Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "disconnected", error_chain(e)))
         }
-        Ok(Err(e)) => Err(ApiError::new(StatusCode::BAD_GATEWAY, "device", error_chain(&e))),
+        Ok(Err(e)) => Err(ApiError::new(StatusCode::BAD_GATEWAY, "device", error_chain(e))),
         Err(_) => Err(ApiError::new(StatusCode::GATEWAY_TIMEOUT, "timeout", "no preview frame in 10 s")),
     }
 }
@@ -335,4 +405,17 @@ async fn metrics(State(s): State<AppState>) -> Response {
 
 async fn page() -> Response {
     ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], include_str!("../../web/index.html")).into_response()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::constant_time_eq;
+
+    #[test]
+    fn token_comparison_is_exact_whatever_the_lengths() {
+        assert!(constant_time_eq(b"s3cret", b"s3cret"));
+        for given in [&b""[..], b"s3cre", b"s3cret!", b"s3creT", b"\xff\xff\xff\xff\xff\xff"] {
+            assert!(!constant_time_eq(given, b"s3cret"), "{given:?}");
+        }
+    }
 }

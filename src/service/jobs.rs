@@ -251,11 +251,16 @@ impl Jobs {
             return Err(JobError::WrongState { id: id.to_owned(), status: meta.status, action: "resume" });
         }
         let config = self.stored_config(id)?;
+        let before = meta.clone();
         meta.status = ScanStatus::Running;
         meta.error = None;
         meta.resumes += 1;
         meta.updated_unix = super::store::now_unix();
-        self.store.save(&meta).map_err(JobError::Store)?;
+        if let Err(e) = self.store.save(&meta) {
+            // Not resumed (the disk is full): the scan keeps the status it had.
+            let _ = self.store.save(&before);
+            return Err(JobError::Store(e));
+        }
         self.launch(&mut active, meta.clone(), Work::Scan { config, resume: true });
         Ok(meta)
     }

@@ -8,11 +8,14 @@
 
 pub mod api;
 pub mod client;
+pub mod http;
 pub mod jobs;
 pub mod metrics;
 pub mod notify;
 pub mod rig;
+pub mod state_lock;
 pub mod store;
+pub mod token;
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -48,6 +51,9 @@ pub enum ServiceError {
     /// The scan store cannot be opened.
     #[error("cannot open the scan store")]
     Store(#[source] store::StoreError),
+    /// Another daemon uses the state directory (or it cannot be locked).
+    #[error("cannot take the state directory")]
+    Lock(#[source] state_lock::LockError),
     /// Listening on a non-loopback address without a token.
     #[error("listening on {0} needs a bearer token (--token-file or SCANRIGD_TOKEN)")]
     TokenRequired(SocketAddr),
@@ -82,6 +88,9 @@ pub async fn run(
         return Err(ServiceError::TokenRequired(opts.listen));
     }
     let config = Arc::new(crate::rigfile::load(&opts.config_path).map_err(ServiceError::Config)?);
+    // Held until `run` returns (the kernel drops it if the process dies).
+    let state_lock = state_lock::lock(&opts.state_dir).map_err(ServiceError::Lock)?;
+    tracing::debug!(lock = %state_lock.path().display(), "state directory locked");
     let (store, interrupted) = store::ScanStore::open(&opts.state_dir).map_err(ServiceError::Store)?;
     for id in &interrupted {
         tracing::warn!(scan = %id, "scan was interrupted by a crash or power loss; it can be resumed");
@@ -124,9 +133,8 @@ pub async fn run(
             }
         });
     }
-    let server =
-        axum::serve(listener, api::router(state.clone())).with_graceful_shutdown(token.clone().cancelled_owned());
-    let server = tokio::spawn(async move { server.await });
+    let server = http::serve(listener, api::router(state.clone()), token.clone(), http::Limits::default());
+    let server = tokio::spawn(server);
     on_listening(addr);
     if let Err(e) = notify::notify("READY=1\nSTATUS=listening") {
         tracing::warn!(error = %e, "cannot notify systemd");
@@ -151,6 +159,7 @@ pub async fn run(
         served
     })
     .await;
+    drop(state_lock);
     match stopped {
         Err(_) => Err(ServiceError::ShutdownDeadline(deadline)),
         Ok(Ok(Ok(()))) => Ok(()),

@@ -73,7 +73,28 @@ pub enum RigError {
     /// The scan failed.
     #[error("scan failed")]
     Scan(#[source] ScanError),
+    /// A preview capture that failed, shared by every request it answered.
+    #[error(transparent)]
+    Shared(Arc<RigError>),
 }
+
+impl RigError {
+    /// The error itself, looking through [`RigError::Shared`].
+    pub fn inner(&self) -> &RigError {
+        match self {
+            RigError::Shared(e) => e.inner(),
+            e => e,
+        }
+    }
+}
+
+/// What a preview capture gives every request waiting for it.
+type PreviewReply = Result<Arc<Vec<u8>>, Arc<RigError>>;
+
+/// The preview requests waiting for the next capture: `None` when no capture is queued.
+/// Concurrent previews share one capture, so at most one preview command is ever in the device
+/// thread's queue and previews can never fill it (a scan's commands always find room).
+type PreviewWaiters = Arc<Mutex<Option<Vec<oneshot::Sender<PreviewReply>>>>>;
 
 /// A scan for the device thread to run.
 pub struct ScanJob {
@@ -96,7 +117,7 @@ impl std::fmt::Debug for ScanJob {
 }
 
 enum Command {
-    Preview(oneshot::Sender<Result<Vec<u8>, RigError>>),
+    Preview,
     Scan(ScanJob, oneshot::Sender<Result<Report, RigError>>),
     Park(oneshot::Sender<Result<(), RigError>>),
     Reload(Arc<RigConfig>),
@@ -107,12 +128,13 @@ enum Command {
 pub struct RigHandle {
     tx: SyncSender<Command>,
     status: RigStatus,
+    previews: PreviewWaiters,
 }
 
 impl std::fmt::Debug for Command {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(match self {
-            Command::Preview(_) => "Preview",
+            Command::Preview => "Preview",
             Command::Scan(..) => "Scan",
             Command::Park(_) => "Park",
             Command::Reload(_) => "Reload",
@@ -134,18 +156,21 @@ impl RigHandle {
         let (tx, rx) = mpsc::sync_channel(8);
         let status: RigStatus = Arc::new(Mutex::new(device_list(&config, DeviceState::Reconnecting, None)));
         let thread_status = status.clone();
+        let previews: PreviewWaiters = Arc::default();
+        let thread_previews = previews.clone();
         let join = std::thread::Builder::new().name("devices".into()).spawn(move || {
             DeviceThread {
                 config,
                 rig: None,
                 status: thread_status,
+                previews: thread_previews,
                 metrics,
                 ever_connected: false,
                 serial_ever_connected: false,
             }
             .run(rx)
         })?;
-        Ok((RigHandle { tx, status }, join))
+        Ok((RigHandle { tx, status, previews }, join))
     }
 
     /// A copy of every device's status.
@@ -160,11 +185,26 @@ impl RigHandle {
         })
     }
 
-    /// Capture one frame and return it as PNG.
+    /// Capture one frame and return it as PNG. Requests made while a capture is queued share it.
     pub async fn preview(&self) -> Result<Vec<u8>, RigError> {
         let (tx, rx) = oneshot::channel();
-        self.send(Command::Preview(tx))?;
-        rx.await.map_err(|_| RigError::Stopped)?
+        {
+            let mut waiters = self.previews.lock().unwrap_or_else(|p| p.into_inner());
+            match waiters.as_mut() {
+                Some(list) => list.push(tx),
+                None => {
+                    *waiters = Some(vec![tx]);
+                    if let Err(e) = self.send(Command::Preview) {
+                        *waiters = None;
+                        return Err(e);
+                    }
+                }
+            }
+        }
+        match rx.await.map_err(|_| RigError::Stopped)? {
+            Ok(png) => Ok(Arc::unwrap_or_clone(png)),
+            Err(e) => Err(RigError::Shared(e)),
+        }
     }
 
     /// Run a scan; resolves when it has finished.
@@ -221,6 +261,7 @@ struct DeviceThread {
     config: Arc<RigConfig>,
     rig: Option<Rig>,
     status: RigStatus,
+    previews: PreviewWaiters,
     metrics: Arc<Metrics>,
     ever_connected: bool,
     /// The serial board has answered at least once since the rig was built.
@@ -409,9 +450,15 @@ impl DeviceThread {
 
     fn handle(&mut self, cmd: Command) {
         match cmd {
-            Command::Preview(reply) => {
-                let result = self.preview();
-                let _ = reply.send(result);
+            Command::Preview => {
+                let waiters = self.previews.lock().unwrap_or_else(|p| p.into_inner()).take().unwrap_or_default();
+                if waiters.is_empty() {
+                    return;
+                }
+                let result: PreviewReply = self.preview().map(Arc::new).map_err(Arc::new);
+                for w in waiters {
+                    let _ = w.send(result.clone());
+                }
             }
             Command::Park(reply) => {
                 let result = match self.rig.as_mut() {

@@ -1,18 +1,32 @@
 //! The scan store: `STATE_DIR/scans/<id>/` holds one scan's frames, results and `meta.json`.
 //!
 //! `meta.json` is written atomically (temporary file, fsync, rename) at every status change, and a
-//! scan's results are final only once `report.json` exists (written last by the scan). On start the
-//! store marks scans that were running or paused when the daemon died as `interrupted`; they can be
-//! resumed from their last complete frame.
+//! scan's results are final only once `report.json` exists (written last by the scan).
+//!
+//! The store keeps every scan's metadata in memory too, and the memory copy is what the daemon
+//! serves: when `meta.json` cannot be written (a full disk) the status is still right, the write is
+//! kept pending and retried at the next store access, so the file catches up once there is room.
+//!
+//! # Status after a crash
+//! On start (after a crash, kill -9 or power loss) the store
+//! - marks scans left `running` as `interrupted` (or `complete` when their `report.json` exists):
+//!   they were stopped between two steps nobody chose;
+//! - leaves `paused` scans `paused`: a pause stops at a step boundary with every frame written, and
+//!   `meta.json` says `paused` only after that, so nothing was in flight when the daemon died;
+//!   `failed`, `cancelled` and `complete` scans also keep their status;
+//! - removes the temporary files of atomic writes (`.NAME.tmp-PID`) that a killed process left in
+//!   every scan directory and its `frames/`, since they never hold a complete result.
 
+use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Mutex;
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use serde::{Deserialize, Serialize};
 
+use crate::atomic::{is_atomic_temp, write_atomic, AtomicWriteError};
 use crate::config::{Method, RigConfig};
-use crate::atomic::{write_atomic, AtomicWriteError};
 
 /// Where a scan is in its life.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -116,11 +130,32 @@ pub enum StoreError {
     NotFound(String),
 }
 
+impl StoreError {
+    /// Whether the error is the disk (or the user's quota) being full.
+    pub fn is_disk_full(&self) -> bool {
+        let io = match self {
+            StoreError::Io { source, .. } => Some(source),
+            StoreError::Write(AtomicWriteError { source, .. }) => Some(source),
+            _ => None,
+        };
+        io.is_some_and(|e| matches!(e.raw_os_error(), Some(libc::ENOSPC) | Some(libc::EDQUOT)))
+    }
+}
+
 /// The scans under a state directory.
 #[derive(Debug)]
 pub struct ScanStore {
     root: PathBuf,
     counter: AtomicU64,
+    /// Every scan's metadata as this process last set it (the truth; `meta.json` follows it).
+    memory: Mutex<Memory>,
+}
+
+#[derive(Debug, Default)]
+struct Memory {
+    metas: HashMap<String, ScanMeta>,
+    /// Ids whose `meta.json` is behind `metas` (the last write failed).
+    pending: HashSet<String>,
 }
 
 /// Seconds since the Unix epoch.
@@ -134,9 +169,9 @@ pub fn valid_id(id: &str) -> bool {
 }
 
 impl ScanStore {
-    /// Open (creating) `state_dir/scans` and recover after a crash: scans left `running` or
-    /// `paused` become `interrupted`, or `complete` when their `report.json` exists. Returns the
-    /// store and the ids it marked interrupted.
+    /// Open (creating) `state_dir/scans` and recover after a crash (see the module docs): scans
+    /// left `running` become `interrupted`, or `complete` when their `report.json` exists; partial
+    /// writes are removed. Returns the store and the ids it marked interrupted.
     pub fn open(state_dir: &Path) -> Result<(ScanStore, Vec<String>), StoreError> {
         let root = state_dir.join("scans");
         std::fs::create_dir_all(&root).map_err(|source| StoreError::Io {
@@ -144,7 +179,8 @@ impl ScanStore {
             path: root.clone(),
             source,
         })?;
-        let store = ScanStore { root, counter: AtomicU64::new(0) };
+        let store = ScanStore { root, counter: AtomicU64::new(0), memory: Mutex::default() };
+        store.remove_partial_writes();
         let mut interrupted = Vec::new();
         for mut meta in store.list()? {
             if meta.status == ScanStatus::Running {
@@ -155,7 +191,8 @@ impl ScanStore {
                     ScanStatus::Interrupted
                 };
                 meta.updated_unix = now_unix();
-                store.save(&meta)?;
+                // Kept in memory (and pending) if the disk is full.
+                let _ = store.save(&meta);
             }
         }
         Ok((store, interrupted))
@@ -164,6 +201,58 @@ impl ScanStore {
     /// The directory of scan `id`.
     pub fn dir(&self, id: &str) -> PathBuf {
         self.root.join(id)
+    }
+
+    /// Remove the `.NAME.tmp-PID` files of atomic writes left by a killed process in every scan
+    /// directory and its `frames/`. Only called before any scan runs.
+    fn remove_partial_writes(&self) {
+        let Ok(scans) = std::fs::read_dir(&self.root) else { return };
+        for scan in scans.flatten() {
+            if !valid_id(&scan.file_name().to_string_lossy()) {
+                continue;
+            }
+            for d in [scan.path(), scan.path().join("frames")] {
+                let Ok(entries) = std::fs::read_dir(&d) else { continue };
+                for entry in entries.flatten() {
+                    if is_atomic_temp(&entry.file_name().to_string_lossy()) {
+                        match std::fs::remove_file(entry.path()) {
+                            Ok(()) => tracing::info!(file = %entry.path().display(), "removed a partial write"),
+                            Err(e) => {
+                                tracing::warn!(file = %entry.path().display(), error = %e, "cannot remove a partial write")
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    fn memory(&self) -> std::sync::MutexGuard<'_, Memory> {
+        self.memory.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Write the `meta.json` files that are behind the memory copy; they stay pending on failure.
+    pub fn flush(&self) {
+        let mut memory = self.memory();
+        if memory.pending.is_empty() {
+            return;
+        }
+        let ids: Vec<String> = memory.pending.iter().cloned().collect();
+        for id in ids {
+            let Some(meta) = memory.metas.get(&id).cloned() else {
+                memory.pending.remove(&id);
+                continue;
+            };
+            if self.write(&meta).is_ok() {
+                tracing::info!(scan = %id, "pending scan metadata written");
+                memory.pending.remove(&id);
+            }
+        }
+    }
+
+    /// Whether `meta.json` of `id` is behind the status served (its last write failed).
+    pub fn pending(&self, id: &str) -> bool {
+        self.memory().pending.contains(id)
     }
 
     /// Create a new scan directory and its `meta.json` with status `running`, for a scan with the
@@ -190,7 +279,13 @@ impl ScanStore {
                         resumes: 0,
                         error: None,
                     };
-                    self.save(&meta)?;
+                    // A scan whose metadata cannot be written is not created: no directory
+                    // without `meta.json` is left behind (a full disk).
+                    if let Err(e) = self.write(&meta) {
+                        let _ = std::fs::remove_dir_all(&dir);
+                        return Err(e);
+                    }
+                    self.memory().metas.insert(meta.id.clone(), meta.clone());
                     return Ok(meta);
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
@@ -199,18 +294,44 @@ impl ScanStore {
         }
     }
 
-    /// Write `meta.json` atomically.
+    /// Record `meta` (in memory at once) and write `meta.json` atomically. When the write fails
+    /// the memory copy is still the status served and the write is retried by later store calls;
+    /// the error is returned so that the caller can decide whether that matters.
     pub fn save(&self, meta: &ScanMeta) -> Result<(), StoreError> {
+        let mut memory = self.memory();
+        memory.metas.insert(meta.id.clone(), meta.clone());
+        match self.write(meta) {
+            Ok(()) => {
+                memory.pending.remove(&meta.id);
+                Ok(())
+            }
+            Err(e) => {
+                tracing::warn!(scan = %meta.id, error = %super::rig::error_chain(&e), "scan metadata kept in memory; written when there is room");
+                memory.pending.insert(meta.id.clone());
+                Err(e)
+            }
+        }
+    }
+
+    fn write(&self, meta: &ScanMeta) -> Result<(), StoreError> {
         let path = self.dir(&meta.id).join("meta.json");
         let json = serde_json::to_vec_pretty(meta).map_err(|source| StoreError::Json { path: path.clone(), source })?;
         write_atomic(&path, &json).map_err(StoreError::Write)
     }
 
-    /// Read scan `id`'s metadata.
+    /// Scan `id`'s metadata: the memory copy when this process has one, else `meta.json`.
     pub fn get(&self, id: &str) -> Result<ScanMeta, StoreError> {
         if !valid_id(id) {
             return Err(StoreError::NotFound(id.to_owned()));
         }
+        self.flush();
+        if let Some(meta) = self.memory().metas.get(id) {
+            return Ok(meta.clone());
+        }
+        self.read(id)
+    }
+
+    fn read(&self, id: &str) -> Result<ScanMeta, StoreError> {
         let path = self.dir(id).join("meta.json");
         let bytes = match std::fs::read(&path) {
             Ok(b) => b,
@@ -235,6 +356,8 @@ impl ScanStore {
             }
             match self.get(&name) {
                 Ok(meta) => out.push(meta),
+                // Removed under our feet (or never written): nothing to list.
+                Err(StoreError::NotFound(_)) => {}
                 Err(e) => tracing::warn!(scan = %name, error = %e, "skipping a scan directory"),
             }
         }
@@ -242,13 +365,14 @@ impl ScanStore {
         Ok(out)
     }
 
-    /// Set scan `id`'s status (and error) and save it.
+    /// Set scan `id`'s status (and error). The new status holds (in memory) even when `meta.json`
+    /// cannot be written now; that write is retried later and logged, not returned.
     pub fn set_status(&self, id: &str, status: ScanStatus, error: Option<String>) -> Result<ScanMeta, StoreError> {
         let mut meta = self.get(id)?;
         meta.status = status;
         meta.error = error;
         meta.updated_unix = now_unix();
-        self.save(&meta)?;
+        let _ = self.save(&meta);
         Ok(meta)
     }
 }

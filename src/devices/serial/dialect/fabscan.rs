@@ -14,6 +14,10 @@ use super::{BoardInfo, Dialect, Timing};
 use crate::devices::serial::error::LinkError;
 use crate::devices::serial::link::Link;
 
+/// Longest output of one command before its prompt, bytes: a board that streams without ever
+/// printing the prompt is a protocol error, not a growing buffer.
+pub const MAX_REPLY: usize = 4096;
+
 /// The FabScan dialect.
 #[derive(Debug)]
 pub struct FabScanDialect {
@@ -46,6 +50,14 @@ impl FabScanDialect {
             let b = link.read_byte(deadline, "the prompt", timeout)?;
             if b == b'>' && (text.is_empty() || text.last() == Some(&b'\n')) {
                 break;
+            }
+            if text.len() >= MAX_REPLY {
+                // Drop the rest of the flood (bounded by the reply timeout) so that the next
+                // command starts on a quiet line.
+                link.discard_input(self.timing.reply_timeout)?;
+                return Err(LinkError::Unexpected {
+                    line: format!("more than {MAX_REPLY} bytes without the `>` prompt"),
+                });
             }
             text.push(b);
         }

@@ -12,6 +12,10 @@ use super::{read_text_line, BoardInfo, Dialect, Timing};
 use crate::devices::serial::error::LinkError;
 use crate::devices::serial::link::Link;
 
+/// Most lines one command may print before its `ok`: a board that streams lines for ever is a
+/// protocol error, not a growing list.
+pub const MAX_LINES: usize = 64;
+
 /// The Horus dialect.
 #[derive(Debug)]
 pub struct HorusDialect {
@@ -44,6 +48,9 @@ impl HorusDialect {
             } else if t.starts_with("Horus") || t.starts_with("Grbl") {
                 return Err(LinkError::BoardReset);
             } else if !t.is_empty() {
+                if lines.len() >= MAX_LINES {
+                    return Err(LinkError::Unexpected { line: format!("more than {MAX_LINES} lines without `ok`") });
+                }
                 lines.push(t.to_owned());
             }
         }

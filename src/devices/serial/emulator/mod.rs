@@ -130,7 +130,17 @@ pub struct Faults {
     pub replug_after_ms: AtomicU64,
     /// Motion commands seen so far.
     pub moves_seen: AtomicU32,
+    /// While set, the board streams garbage bytes (never a line break) and sends nothing else.
+    pub garbage_stream: AtomicBool,
+    /// While set, every reply trickles out one byte at a time and never reaches its line break
+    /// (or prompt): a byte of it per loop turn, for ever.
+    pub trickle: AtomicBool,
+    /// The next N terminal replies are preceded by a 64 KiB line of text (ended by a line break).
+    pub overlong_replies: AtomicU32,
 }
+
+/// Length of the line [`Faults::overlong_replies`] sends, bytes.
+pub const OVERLONG_LINE: usize = 64 * 1024;
 
 impl Faults {
     /// Pull the cable.
@@ -383,6 +393,9 @@ impl Opener for EmulatorOpener {
 
 const GARBAGE: &[u8] = b"\x00\xfe#~%\x7f";
 
+/// What [`Faults::garbage_stream`] sends each loop turn: bytes of no dialect, no line break, no prompt.
+const GARBAGE_STREAM: [u8; 64] = [0xA5; 64];
+
 fn run(shared: Arc<Shared>, fw: EmulatedFirmware, settings: EmulatorSettings, hw: Arc<dyn EmulatedHardware>) {
     let faults = Arc::clone(&shared.faults);
     let mut master: Option<TTYPort> = None;
@@ -451,6 +464,16 @@ fn run(shared: Arc<Shared>, fw: EmulatedFirmware, settings: EmulatorSettings, hw
             master = None;
             continue;
         }
+        if faults.garbage_stream.load(Ordering::SeqCst) || faults.trickle.load(Ordering::SeqCst) {
+            out.items.clear();
+            let bytes: &[u8] = if faults.garbage_stream.load(Ordering::SeqCst) { &GARBAGE_STREAM } else { b"o" };
+            if let Some(port) = master.as_mut() {
+                if std::io::Write::write_all(port, bytes).is_err() {
+                    master = None;
+                }
+            }
+            continue;
+        }
         for (kind, mut bytes) in out.items.drain(..) {
             match kind {
                 OutKind::Reply if Faults::take(&faults.drop_replies) => continue,
@@ -458,6 +481,12 @@ fn run(shared: Arc<Shared>, fw: EmulatedFirmware, settings: EmulatorSettings, hw
                 OutKind::Reply => {
                     if Faults::take(&faults.corrupt_replies) && bytes.len() > 2 {
                         bytes[1] ^= 0x04;
+                    }
+                    if Faults::take(&faults.overlong_replies) {
+                        let mut g = vec![b'x'; OVERLONG_LINE];
+                        g.push(b'\n');
+                        g.extend_from_slice(&bytes);
+                        bytes = g;
                     }
                     if Faults::take(&faults.garbage_replies) {
                         let mut g = GARBAGE.to_vec();
