@@ -44,7 +44,7 @@ fn real_chessboard_is_detected_and_reprojects_with_published_intrinsics() {
     let xml = std::fs::read_to_string(dir.join("calibration_result.xml")).expect("calibration_result.xml");
     let k = xml_matrix(&xml, "cam_int");
     let d = xml_matrix(&xml, "cam_dist");
-    let published = Intrinsics { fx: k[0], fy: k[4], cx: k[2], cy: k[5], skew: 0.0, k1: d[0], k2: d[1] };
+    let published = Intrinsics { fx: k[0], fy: k[4], cx: k[2], cy: k[5], skew: 0.0, k1: d[0], k2: d[1], ..Intrinsics::default() };
     let est = estimate_pose(&published, &view).expect("pose");
     println!(
         "real board: {} candidates, board origin at ({:.3}, {:.3}, {:.3}) m, RMS with published intrinsics {:.3} px",

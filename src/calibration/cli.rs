@@ -385,6 +385,9 @@ fn calibrate_camera_command(source: &BoardSource, distortion: bool, fix_pp: bool
         cy_px: i.cy,
         k1: i.k1,
         k2: i.k2,
+        p1: i.p1,
+        p2: i.p2,
+        k3: i.k3,
         rms_px: cal.rms_px,
         views: views.len(),
     });

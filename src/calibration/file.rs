@@ -4,7 +4,7 @@
 //! ```toml
 //! format_version = 1
 //!
-//! [camera]            # intrinsics, pixels; k1, k2 radial distortion of normalised coordinates
+//! [camera]            # intrinsics, pixels; k1 k2 p1 p2 k3 Brown-Conrady distortion (OpenCV's)
 //! width_px = 640
 //! height_px = 480
 //! fx_px = 700.1
@@ -13,6 +13,7 @@
 //! cy_px = 243.1
 //! k1 = -0.08
 //! k2 = 0.02
+//! p1 = 0.0           # optional, 0 when absent (as p2, k3)
 //! rms_px = 0.09        # re-projection RMS of the calibration
 //! views = 12           # board views used
 //!
@@ -85,6 +86,15 @@ pub struct CameraSection {
     pub k1: f64,
     /// Second radial distortion coefficient (dimensionless).
     pub k2: f64,
+    /// First tangential distortion coefficient (OpenCV's p1; 0 when absent).
+    #[serde(default)]
+    pub p1: f64,
+    /// Second tangential distortion coefficient (OpenCV's p2; 0 when absent).
+    #[serde(default)]
+    pub p2: f64,
+    /// Radial distortion coefficient of r⁶ (OpenCV's k3; 0 when absent).
+    #[serde(default)]
+    pub k3: f64,
     /// Re-projection RMS of the calibration, pixels.
     pub rms_px: f64,
     /// Board views used.
@@ -102,6 +112,9 @@ impl CameraSection {
             skew: 0.0,
             k1: self.k1,
             k2: self.k2,
+            p1: self.p1,
+            p2: self.p2,
+            k3: self.k3,
         }
     }
 }
@@ -394,6 +407,9 @@ mod tests {
                 cy_px: 240.5,
                 k1: -0.08,
                 k2: 0.02,
+                p1: 1e-4,
+                p2: -2e-4,
+                k3: 0.01,
                 rms_px: 0.09,
                 views: 12,
             }),

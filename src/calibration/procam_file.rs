@@ -2,7 +2,7 @@
 //! pose) -> projector-camera calibration -> a TOML calibration file, with an optional comparison
 //! against a published OpenCV calibration.
 //!
-//! The file ([`ProcamFile`]) holds both devices' [`Lens`] (pixels), the projector's size, the
+//! The file ([`ProcamFile`]) holds both devices' [`Intrinsics`] (pixels), the projector's size, the
 //! Gray-code step, and projector <- camera `rotation` (row-major 3x3) and `translation` in the unit
 //! of the board's square size.
 
@@ -12,10 +12,11 @@ use serde::{Deserialize, Serialize};
 
 use super::opencv_xml::{OpenCvXmlError, ReferenceCalibration};
 use super::procam::{
-    calibrate_procam, procam_view_from_frames, rotation_difference_deg, Lens, ProcamOptions, ProcamView,
-    ProcamViewError, ProcamViewOptions, ProcamViewStats,
+    calibrate_procam, procam_view_from_frames, rotation_difference_deg, ProcamOptions, ProcamView, ProcamViewError,
+    ProcamViewOptions, ProcamViewStats,
 };
 use super::{BoardSpec, CalibrationError};
+use crate::geometry::Intrinsics;
 use crate::geometry::Pose;
 use crate::pipeline::export::{write_atomic, ExportError};
 use crate::pipeline::structured_light::{load_capture_dir, CaptureError, GrayCodePatterns, PatternError};
@@ -25,9 +26,9 @@ use crate::pipeline::structured_light::{load_capture_dir, CaptureError, GrayCode
 #[serde(deny_unknown_fields)]
 pub struct ProcamFile {
     /// Camera intrinsics, camera pixels.
-    pub camera: Lens,
+    pub camera: Intrinsics,
     /// Projector intrinsics, projector pixels.
-    pub projector: Lens,
+    pub projector: Intrinsics,
     /// Projector width, pixels.
     pub projector_width: u32,
     /// Projector height, pixels.
@@ -103,7 +104,7 @@ pub struct ProcamRequest {
     pub patterns: (u32, u32),
     /// Capture options (decoder thresholds, detector, local homographies incl. the Gray-code step).
     pub view: ProcamViewOptions,
-    /// A TOML file with a `[camera]` table of [`Lens`] fields (e.g. a file this workflow wrote) to
+    /// A TOML file with a `[camera]` table of [`Intrinsics`] fields (e.g. a file this workflow wrote) to
     /// hold the camera intrinsics fixed.
     pub camera_calib: Option<PathBuf>,
     /// A published OpenCV `calibration_result.xml` to compare with.
@@ -136,10 +137,10 @@ pub struct ProcamReport {
     pub reference: Option<ReferenceComparison>,
 }
 
-fn read_camera_file(path: &Path) -> Result<Lens, ProcamFileError> {
+fn read_camera_file(path: &Path) -> Result<Intrinsics, ProcamFileError> {
     #[derive(Deserialize)]
     struct CameraOnly {
-        camera: Lens,
+        camera: Intrinsics,
     }
     let bad = |reason: String| ProcamFileError::ReadFile { path: path.to_path_buf(), reason };
     let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
@@ -240,7 +241,7 @@ mod tests {
     #[test]
     fn camera_file_round_trips_and_errors_name_the_file() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let lens = Lens {
+        let lens = Intrinsics {
             fx: 800.0,
             fy: 790.0,
             cx: 320.5,
@@ -254,7 +255,7 @@ mod tests {
         };
         let file = ProcamFile {
             camera: lens,
-            projector: Lens { fx: 400.0, ..lens },
+            projector: Intrinsics { fx: 400.0, ..lens },
             projector_width: 320,
             projector_height: 240,
             graycode_step: 1,

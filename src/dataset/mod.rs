@@ -152,6 +152,14 @@ pub enum DatasetError {
         /// Image height, px.
         expected_height: u32,
     },
+    /// A depth map is not a single-channel 16-bit PNG.
+    #[error("{path}: a depth map must be a single-channel 16-bit PNG in millimetres, found {found}")]
+    DepthFormat {
+        /// The file.
+        path: PathBuf,
+        /// What the file is.
+        found: String,
+    },
     /// No calibration file was given and none was found.
     #[error("{dir}: no calibration file (*_par.txt) found")]
     NoCalibration {
@@ -255,19 +263,39 @@ pub fn parse_par(text: &str, path: &Path) -> Result<Vec<Calibration>, DatasetErr
     Ok(out)
 }
 
-/// Decompose `P = K [R | t]` (RQ decomposition of the left 3x3 block, `K` with positive diagonal
-/// normalised so `K33 = 1`, `R` a proper rotation). `None` when the block is singular.
+/// Decompose `P = K [R | t]` with the overall sign of `P` taken from the determinant of its left 3x3
+/// block (right for a right-handed world frame; see [`decompose_projection_facing`] for the general
+/// case). `None` when the block is singular.
 pub fn decompose_projection(p: &nalgebra::Matrix3x4<f64>) -> Option<(Intrinsics, Pose)> {
-    let mut m: Matrix3<f64> = p.fixed_view::<3, 3>(0, 0).into_owned();
-    let mut p4: Vector3<f64> = p.column(3).into_owned();
-    let det = m.determinant();
+    let det = p.fixed_view::<3, 3>(0, 0).determinant();
     if !det.is_finite() || det.abs() < 1e-300 {
         return None;
     }
-    if det < 0.0 {
-        // P is defined up to scale: flip the sign so R comes out a rotation.
-        m = -m;
-        p4 = -p4;
+    decompose_signed(&(p * det.signum()))
+}
+
+/// Decompose `P = K [R | t]` so that `scene` (a point of the scene, world frame) lies in front of the
+/// camera: `P` is defined up to scale, and the sign of that scale is what says which way the camera
+/// looks. `K` is upper triangular with a positive diagonal (normalised so `K33 = 1`); `R` is
+/// orthogonal, a proper rotation for a right-handed world frame and a rotation times a mirror
+/// (determinant -1) when the world frame is left-handed (published calibrations exist in mirrored
+/// frames): projection, rays and carving work the same, the reconstruction comes out in that frame.
+/// `None` when the block is singular or `scene` lies on the camera's focal plane.
+pub fn decompose_projection_facing(p: &nalgebra::Matrix3x4<f64>, scene: &Vector3<f64>) -> Option<(Intrinsics, Pose)> {
+    let w = (p * scene.push(1.0)).z;
+    if !w.is_finite() || w == 0.0 {
+        return None;
+    }
+    decompose_signed(&(p * w.signum()))
+}
+
+/// RQ decomposition of `P` as given (no sign change): `K` with positive diagonal, `R` orthogonal.
+fn decompose_signed(p: &nalgebra::Matrix3x4<f64>) -> Option<(Intrinsics, Pose)> {
+    let m: Matrix3<f64> = p.fixed_view::<3, 3>(0, 0).into_owned();
+    let p4: Vector3<f64> = p.column(3).into_owned();
+    let det = m.determinant();
+    if !det.is_finite() || det.abs() < 1e-300 {
+        return None;
     }
     let rows = [m.row(0).transpose(), m.row(1).transpose(), m.row(2).transpose()];
     let k33 = rows[2].norm();
@@ -290,9 +318,37 @@ pub fn decompose_projection(p: &nalgebra::Matrix3x4<f64>) -> Option<(Intrinsics,
     Some((Intrinsics::from_matrix(&k), Pose { rotation, translation: t }))
 }
 
+/// The point nearest (least squares) to every camera's optical axis, world frame: where a set of
+/// cameras looking at one object converge. Needs two or more cameras whose axes are not all
+/// parallel; independent of the sign of each `P` (the axis is the line through the centre along the
+/// third row of the left block). `None` otherwise.
+pub fn axes_convergence_point(projections: &[nalgebra::Matrix3x4<f64>]) -> Option<Vector3<f64>> {
+    let mut a = Matrix3::zeros();
+    let mut b = Vector3::zeros();
+    for p in projections {
+        let m: Matrix3<f64> = p.fixed_view::<3, 3>(0, 0).into_owned();
+        let centre = -(m.try_inverse()? * p.column(3));
+        let d = m.row(2).transpose().normalize();
+        let proj = Matrix3::identity() - d * d.transpose();
+        a += proj;
+        b += proj * centre;
+    }
+    let eig = a.symmetric_eigen();
+    let smallest = eig.eigenvalues.iter().copied().fold(f64::INFINITY, f64::min);
+    if projections.len() < 2 || !(smallest > 1e-6 * projections.len() as f64) {
+        return None;
+    }
+    a.try_inverse().map(|inv| inv * b).filter(|x| x.iter().all(|v| v.is_finite()))
+}
+
 /// Parse a projection-matrix file's text (`name p11 .. p34` per line); `path` is used in errors.
+///
+/// Each `P` may carry either overall sign and the world frame may be left-handed: which way a camera
+/// looks follows from the scene lying in front of it, the scene being where the cameras' optical
+/// axes converge ([`axes_convergence_point`]). A file of one camera (or of parallel axes) falls back
+/// to the determinant's sign, i.e. assumes a right-handed world frame.
 pub fn parse_projections(text: &str, path: &Path) -> Result<Vec<Calibration>, DatasetError> {
-    let mut out = Vec::new();
+    let mut raw = Vec::new();
     for (line, l) in content_lines(text) {
         let tokens: Vec<&str> = l.split_whitespace().collect();
         if tokens.len() != 13 {
@@ -300,14 +356,26 @@ pub fn parse_projections(text: &str, path: &Path) -> Result<Vec<Calibration>, Da
         }
         let v = parse_numbers(path, line, &tokens[1..])?;
         let p = nalgebra::Matrix3x4::from_row_slice(&v);
-        let (intrinsics, pose) =
-            decompose_projection(&p).ok_or(DatasetError::DegenerateProjection { path: path.to_path_buf(), line })?;
-        out.push(Calibration { name: tokens[0].to_string(), intrinsics, pose, line });
+        if decompose_projection(&p).is_none() {
+            return Err(DatasetError::DegenerateProjection { path: path.to_path_buf(), line });
+        }
+        raw.push((tokens[0].to_string(), p, line));
     }
-    if out.is_empty() {
+    if raw.is_empty() {
         return Err(DatasetError::NoViews { path: path.to_path_buf() });
     }
-    Ok(out)
+    let ps: Vec<_> = raw.iter().map(|r| r.1).collect();
+    let scene = axes_convergence_point(&ps);
+    raw.into_iter()
+        .map(|(name, p, line)| {
+            let d = match &scene {
+                Some(x) => decompose_projection_facing(&p, x),
+                None => decompose_projection(&p),
+            };
+            let (intrinsics, pose) = d.ok_or(DatasetError::DegenerateProjection { path: path.to_path_buf(), line })?;
+            Ok(Calibration { name, intrinsics, pose, line })
+        })
+        .collect()
 }
 
 /// Read a calibration file: the Middlebury format when the first content line is a single integer,
@@ -454,15 +522,76 @@ fn find_par(dir: &Path) -> Result<PathBuf, DatasetError> {
     found.into_iter().next().ok_or_else(|| DatasetError::NoCalibration { dir: dir.to_path_buf() })
 }
 
-fn load_rgb(path: &Path) -> Result<RgbImage, DatasetError> {
-    Ok(image::open(path).map_err(|source| DatasetError::Image { path: path.to_path_buf(), source })?.to_rgb8())
+/// Open an image of any format the project reads: PNG (8 or 16 bits per channel), JPEG, PNM
+/// (PBM/PGM/PPM), TIFF and BMP, told apart by their content. Anything else, and any decoding error,
+/// is a [`DatasetError::Image`] naming the file.
+pub fn open_image(path: &Path) -> Result<image::DynamicImage, DatasetError> {
+    let err = |source| DatasetError::Image { path: path.to_path_buf(), source };
+    image::ImageReader::open(path)
+        .map_err(|e| err(image::ImageError::IoError(e)))?
+        .with_guessed_format()
+        .map_err(|e| err(image::ImageError::IoError(e)))?
+        .decode()
+        .map_err(err)
 }
 
-/// Load a mask PNG (any non-zero luma is object).
+/// Load an image as 8-bit RGB (16-bit images are scaled to 8 bits); see [`open_image`].
+pub fn load_rgb(path: &Path) -> Result<RgbImage, DatasetError> {
+    Ok(open_image(path)?.to_rgb8())
+}
+
+/// Load an image as 8-bit grey (luma); see [`open_image`].
+pub fn load_gray(path: &Path) -> Result<image::GrayImage, DatasetError> {
+    Ok(open_image(path)?.to_luma8())
+}
+
+/// Load a mask image (any format of [`open_image`]; any non-zero luma is object).
 pub fn load_mask(path: &Path) -> Result<Mask, DatasetError> {
-    let img = image::open(path).map_err(|source| DatasetError::Image { path: path.to_path_buf(), source })?.to_luma8();
+    let img = load_gray(path)?;
     let (w, h) = img.dimensions();
     Ok(Mask::from_fn(w, h, |u, v| img.get_pixel(u, v).0[0] != 0))
+}
+
+/// A depth map read from disk.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DepthImage {
+    /// Width, pixels.
+    pub width: u32,
+    /// Height, pixels.
+    pub height: u32,
+    /// Depth along the optical axis (camera-frame `z`), metres, row-major; 0 = no measurement (as
+    /// [`crate::pipeline::depth_fusion::Tsdf::integrate`] takes it).
+    pub depth_m: Vec<f32>,
+}
+
+/// TUM RGB-D's and Open3D's depth scale: a 16-bit PNG value of 1000 is one metre.
+pub const DEPTH_PNG_UNITS_PER_M: f32 = 1000.0;
+
+/// Load a depth map stored as a single-channel 16-bit PNG in millimetres (`value / 1000` metres, 0 =
+/// no measurement), the convention of TUM RGB-D and Open3D. Any other image (8-bit, colour, not a
+/// PNG) is [`DatasetError::DepthFormat`] naming the file.
+pub fn load_depth_png_mm(path: &Path) -> Result<DepthImage, DatasetError> {
+    let bytes = std::fs::read(path).map_err(|source| DatasetError::Read { path: path.to_path_buf(), source })?;
+    let format = image::guess_format(&bytes).ok();
+    if format != Some(image::ImageFormat::Png) {
+        return Err(DatasetError::DepthFormat {
+            path: path.to_path_buf(),
+            found: format.map_or_else(|| "an unknown format".to_string(), |f| format!("{f:?}")),
+        });
+    }
+    let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+        .map_err(|source| DatasetError::Image { path: path.to_path_buf(), source })?;
+    match img {
+        image::DynamicImage::ImageLuma16(buf) => {
+            let (width, height) = buf.dimensions();
+            let depth_m = buf.into_raw().into_iter().map(|v| v as f32 / DEPTH_PNG_UNITS_PER_M).collect();
+            Ok(DepthImage { width, height, depth_m })
+        }
+        other => Err(DatasetError::DepthFormat {
+            path: path.to_path_buf(),
+            found: format!("a PNG of {:?} pixels", other.color()),
+        }),
+    }
 }
 
 /// Load a data set (see the module docs). Masks are extracted in parallel.
@@ -538,7 +667,7 @@ mod tests {
         let cam = CameraModel {
             width: 640,
             height: 480,
-            intrinsics: Intrinsics { fx: 900.0, fy: 880.0, cx: 300.0, cy: 250.0, skew: 1.5, k1: 0.0, k2: 0.0 },
+            intrinsics: Intrinsics { fx: 900.0, fy: 880.0, cx: 300.0, cy: 250.0, skew: 1.5, k1: 0.0, k2: 0.0, ..Intrinsics::default() },
             pose: Pose::look_at(Vector3::new(0.3, -0.4, 0.2), Vector3::new(0.0, 0.0, 0.05), Vector3::z()),
         };
         for scale in [1.0, -2.5, 0.01] {
@@ -550,6 +679,46 @@ mod tests {
             assert!((pose.translation - cam.pose.translation).norm() < 1e-9);
         }
         assert!(decompose_projection(&nalgebra::Matrix3x4::zeros()).is_none());
+    }
+
+    #[test]
+    fn the_scene_decides_which_way_a_camera_looks() {
+        let cam = CameraModel {
+            width: 640,
+            height: 480,
+            intrinsics: Intrinsics::new(900.0, 880.0, 300.0, 250.0),
+            pose: Pose::look_at(Vector3::new(0.3, -0.4, 0.2), Vector3::new(0.0, 0.0, 0.05), Vector3::z()),
+        };
+        let scene = Vector3::new(0.01, 0.02, 0.06);
+        // Mirrored world (x' = -x): P' = P diag(-1, 1, 1, 1) has a negative determinant with the
+        // scene in front; either overall sign decomposes to a camera that sees the mirrored scene.
+        let mut mirrored = cam.projection_matrix();
+        mirrored.column_mut(0).neg_mut();
+        let scene_m = Vector3::new(-scene.x, scene.y, scene.z);
+        for p in [mirrored, -mirrored * 3.0] {
+            let (k, pose) = decompose_projection_facing(&p, &scene_m).expect("decomposes");
+            assert!((k.fx - 900.0).abs() < 1e-6 && (k.cy - 250.0).abs() < 1e-6);
+            assert!((pose.rotation.determinant() + 1.0).abs() < 1e-9, "a mirror, not a rotation");
+            let m = CameraModel { intrinsics: k, pose, ..cam };
+            let a = cam.project(&scene).expect("in front");
+            let b = m.project(&scene_m).expect("in front of the mirrored camera too");
+            assert!((a - b).norm() < 1e-6, "{a} {b}");
+        }
+        // The determinant rule gets the mirrored camera backwards: the scene ends up behind it.
+        let (k, pose) = decompose_projection(&mirrored).expect("decomposes");
+        assert!(CameraModel { intrinsics: k, pose, ..cam }.project(&scene_m).is_none());
+        // The axes of cameras around the object converge near it.
+        let cams: Vec<_> = (0..6)
+            .map(|i| {
+                let a = i as f64;
+                let eye = Vector3::new(0.5 * a.cos(), 0.5 * a.sin(), 0.2);
+                CameraModel { pose: Pose::look_at(eye, scene, Vector3::z()), ..cam }.projection_matrix()
+                    * if i % 2 == 0 { 1.0 } else { -1.0 }
+            })
+            .collect();
+        let x = axes_convergence_point(&cams).expect("converge");
+        assert!((x - scene).norm() < 1e-9, "{x}");
+        assert!(axes_convergence_point(&cams[..1]).is_none());
     }
 
     #[test]
