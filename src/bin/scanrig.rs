@@ -27,6 +27,40 @@ enum CalibrateCommand {
     Projector(ProjectorArgs),
 }
 
+/// `scanrig triangulate` options.
+#[derive(clap::Args, Debug)]
+struct TriangulateArgs {
+    /// Directory of the captured Gray-code sequence (sorted by name: pattern/inverse pairs for the
+    /// columns then the rows, MSB first, then all-white and all-black).
+    #[arg(long)]
+    images: PathBuf,
+    /// Projector-camera calibration: a TOML file of `scanrig calibrate projector` or an OpenCV
+    /// FileStorage XML (calibration_result.xml).
+    #[arg(long)]
+    procam: PathBuf,
+    /// Gray-code pattern resolution WIDTHxHEIGHT, pixels (for an XML calibration).
+    #[arg(long, default_value = "1024x768")]
+    projector: String,
+    /// Projector pixels per Gray-code pixel (for an XML calibration).
+    #[arg(long, default_value_t = 1)]
+    graycode_step: u32,
+    /// A pixel is lit when |white - black| exceeds this (grey levels).
+    #[arg(long, default_value_t = 40)]
+    black_threshold: u8,
+    /// Every bit needs |pattern - inverse| of at least this (grey levels).
+    #[arg(long, default_value_t = 5)]
+    white_threshold: u8,
+    /// The chessboard in view, inner corners COLSxROWS, to measure the cloud (needs --square).
+    #[arg(long, requires = "square")]
+    board: Option<String>,
+    /// Square size of --board, in the calibration's length unit.
+    #[arg(long)]
+    square: Option<f64>,
+    /// Output point cloud (binary PLY).
+    #[arg(long)]
+    out: PathBuf,
+}
+
 /// `scanrig calibrate projector` options.
 #[derive(clap::Args, Debug)]
 struct ProjectorArgs {
@@ -154,6 +188,10 @@ enum Command {
         #[command(subcommand)]
         what: CalibrateCommand,
     },
+    /// Triangulate a Gray-code structured-light capture with its projector-camera calibration into a
+    /// coloured point cloud (camera frame, the calibration's length unit); with --board, also measure
+    /// the chessboard in view (plane-fit RMS, neighbouring-corner distances against the square).
+    Triangulate(TriangulateArgs),
     /// Check a rig file and report every problem in it.
     Validate {
         /// The rig file (TOML).
@@ -388,6 +426,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Calibrate { what: CalibrateCommand::Rig(what) } => Ok(scanrig::calibration::cli::run(what)?),
         Command::Calibrate { what: CalibrateCommand::Projector(args) } => calibrate_projector(args),
+        Command::Triangulate(args) => triangulate_capture(args),
         Command::Status(d) => {
             let v = d.client()?.get_json("/api/v1/status")?;
             println!("{}", serde_json::to_string_pretty(&v)?);
@@ -618,5 +657,58 @@ fn calibrate_projector(args: ProjectorArgs) -> anyhow::Result<()> {
     }
     write_procam_file(&out, f)?;
     println!("wrote {}", out.display());
+    Ok(())
+}
+
+fn triangulate_capture(args: TriangulateArgs) -> anyhow::Result<()> {
+    use scanrig::calibration::procam_cloud::{run_triangulate, TriangulateRequest};
+    if args.graycode_step == 0 {
+        anyhow::bail!("--graycode-step must be at least 1");
+    }
+    let board = match (&args.board, args.square) {
+        (Some(b), Some(sq)) => {
+            let (cols, rows) = parse_size(b, "--board")?;
+            Some(scanrig::calibration::BoardSpec::new(cols as usize, rows as usize, sq).context("--board/--square")?)
+        }
+        _ => None,
+    };
+    let mut view = scanrig::calibration::procam::ProcamViewOptions::default();
+    view.decode.black_threshold = args.black_threshold;
+    view.decode.white_threshold = args.white_threshold;
+    view.local.graycode_step = args.graycode_step;
+    let req = TriangulateRequest {
+        images: args.images,
+        procam: args.procam,
+        patterns: parse_size(&args.projector, "--projector")?,
+        graycode_step: args.graycode_step,
+        view,
+        board,
+        out: args.out,
+    };
+    let r = run_triangulate(&req).with_context(|| format!("triangulating {}", req.images.display()))?;
+    println!(
+        "{}x{} camera, {:.1}% decoded, {} points ({} outliers removed)",
+        r.camera_size.0,
+        r.camera_size.1,
+        100.0 * r.decoded_fraction,
+        r.points,
+        r.outliers
+    );
+    if let Some(b) = &r.board {
+        println!(
+            "board plane: {} points, RMS {:.3}, max {:.3}; corners: {} triangulated (mean ray gap {:.3}), {} neighbour pairs, spacing mean {:.3} (square {}), RMS error {:.3}, max error {:.2}%",
+            b.plane_points,
+            b.plane_rms,
+            b.plane_max,
+            b.corners,
+            b.corner_ray_gap_mean,
+            b.pairs,
+            b.spacing_mean,
+            req.board.map_or(0.0, |x| x.square_m),
+            b.spacing_rms,
+            100.0 * b.spacing_max_rel_error
+        );
+    }
+    println!("wrote {}", req.out.display());
     Ok(())
 }

@@ -25,6 +25,7 @@ pub mod file;
 mod lm;
 pub mod opencv_xml;
 pub mod procam;
+pub mod procam_cloud;
 pub mod procam_file;
 pub mod procam_sim;
 pub mod turntable;
