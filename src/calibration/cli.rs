@@ -25,6 +25,32 @@ use crate::pipeline::light_calibration::{
 use crate::sim::chessboard::ChessboardTarget;
 use crate::sim::{FrameNoise, Lighting, Material, PointLight, Primitive, RayTable, Scene, SimWorld, Solid};
 
+/// File extensions of board images (PNG 8/16-bit, JPEG, PNM, TIFF, BMP), case-insensitive.
+pub const IMAGE_EXTENSIONS: [&str; 10] = ["png", "jpg", "jpeg", "pgm", "ppm", "pnm", "pbm", "tif", "tiff", "bmp"];
+
+/// Read an image of any supported format as 8-bit grey; errors name the file.
+fn read_gray(p: &Path) -> Result<GrayImage, WorkflowError> {
+    crate::dataset::load_gray(p).map_err(|e| match e {
+        crate::dataset::DatasetError::Image { path, source } => {
+            WorkflowError::Image { path, what: "cannot read image", source }
+        }
+        crate::dataset::DatasetError::Read { path, source } => {
+            WorkflowError::Io { path, what: "cannot read image", source }
+        }
+        other => WorkflowError::Io { path: p.to_owned(), what: "cannot read image", source: std::io::Error::other(other.to_string()) },
+    })
+}
+
+/// Read an image of any supported format as 8-bit RGB; errors name the file.
+fn read_rgb(p: &Path) -> Result<image::RgbImage, WorkflowError> {
+    crate::dataset::load_rgb(p).map_err(|e| match e {
+        crate::dataset::DatasetError::Image { path, source } => {
+            WorkflowError::Image { path, what: "cannot read image", source }
+        }
+        other => WorkflowError::Io { path: p.to_owned(), what: "cannot read image", source: std::io::Error::other(other.to_string()) },
+    })
+}
+
 /// Board views needed for a camera calibration.
 const MIN_CAMERA_VIEWS: usize = 3;
 
@@ -36,9 +62,12 @@ pub enum CalibrateCommand {
         /// Where the board images come from.
         #[command(flatten)]
         source: BoardSource,
-        /// Do not estimate the distortion (k1 = k2 = 0).
+        /// Do not estimate the distortion (k1 = k2 = p1 = p2 = k3 = 0).
         #[arg(long)]
         no_distortion: bool,
+        /// Distortion terms to estimate: 2 (k1 k2) or 5 (OpenCV's k1 k2 p1 p2 k3).
+        #[arg(long, default_value_t = 2)]
+        distortion_terms: u8,
         /// Hold the principal point at the image centre (for one or two views).
         #[arg(long)]
         fix_principal_point: bool,
@@ -170,13 +199,22 @@ pub enum WorkflowError {
     /// The rig cannot do what was asked.
     #[error("{0}")]
     Unsupported(&'static str),
+    /// An output file could not be written.
+    #[error(transparent)]
+    Export(#[from] crate::pipeline::export::ExportError),
 }
 
 /// Run one `calibrate` command, printing progress to stdout.
 pub fn run(command: CalibrateCommand) -> Result<(), WorkflowError> {
     match command {
-        CalibrateCommand::Camera { source, no_distortion, fix_principal_point } => {
-            calibrate_camera_command(&source, !no_distortion, fix_principal_point)
+        CalibrateCommand::Camera { source, no_distortion, distortion_terms, fix_principal_point } => {
+            if !matches!(distortion_terms, 2 | 5) {
+                return Err(WorkflowError::Argument {
+                    arg: "distortion-terms",
+                    message: format!("2 (k1 k2) or 5 (k1 k2 p1 p2 k3), got {distortion_terms}"),
+                });
+            }
+            calibrate_camera_command(&source, !no_distortion, distortion_terms == 5, fix_principal_point)
         }
         CalibrateCommand::Turntable { source, intrinsics, board_height_mm } => {
             calibrate_turntable_command(&source, intrinsics.as_deref(), board_height_mm)
@@ -231,18 +269,17 @@ fn load_images(dir: &Path) -> Result<(Vec<BoardImage>, (u32, u32)), WorkflowErro
     let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|e| io("cannot list the image directory", e))?
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x.eq_ignore_ascii_case("png")))
+        .filter(|p| {
+            p.extension().and_then(|x| x.to_str()).is_some_and(|x| {
+                IMAGE_EXTENSIONS.iter().any(|e| x.eq_ignore_ascii_case(e))
+            })
+        })
         .collect();
     paths.sort();
     let mut out = Vec::with_capacity(paths.len());
     let mut size = None;
     for p in paths {
-        let img = image::open(&p).map_err(|source| WorkflowError::Image {
-            path: p.clone(),
-            what: "cannot read image",
-            source,
-        })?;
-        let gray = img.to_luma8();
+        let gray = read_gray(&p)?;
         let dims = gray.dimensions();
         if *size.get_or_insert(dims) != dims {
             return Err(WorkflowError::Argument {
@@ -318,7 +355,12 @@ fn report_rejection(name: &str, e: &DetectError) {
     println!("{name}: rejected: {e}");
 }
 
-fn calibrate_camera_command(source: &BoardSource, distortion: bool, fix_pp: bool) -> Result<(), WorkflowError> {
+fn calibrate_camera_command(
+    source: &BoardSource,
+    distortion: bool,
+    full_distortion: bool,
+    fix_pp: bool,
+) -> Result<(), WorkflowError> {
     let board = parse_board(&source.board, source.square_mm)?;
     let (images, (width, height)) = match (&source.images, &source.rig) {
         (Some(dir), _) => load_images(dir)?,
@@ -355,6 +397,7 @@ fn calibrate_camera_command(source: &BoardSource, distortion: bool, fix_pp: bool
     let options = CalibrationOptions {
         fixed_principal_point: fix_pp.then_some((width as f64 / 2.0, height as f64 / 2.0)),
         estimate_distortion: distortion,
+        full_distortion,
         ..CalibrationOptions::default()
     };
     let planar: Vec<PlanarView> = views.iter().map(|(_, v)| v.clone()).collect();
@@ -364,13 +407,16 @@ fn calibrate_camera_command(source: &BoardSource, distortion: bool, fix_pp: bool
     }
     let i = cal.intrinsics;
     println!(
-        "camera: fx {:.2} fy {:.2} cx {:.2} cy {:.2} px, k1 {:.5} k2 {:.5}; RMS {:.3} px over {} of {} images",
+        "camera: fx {:.2} fy {:.2} cx {:.2} cy {:.2} px, k1 {:.5} k2 {:.5} p1 {:.3e} p2 {:.3e} k3 {:.5}; RMS {:.3} px over {} of {} images",
         i.fx,
         i.fy,
         i.cx,
         i.cy,
         i.k1,
         i.k2,
+        i.p1,
+        i.p2,
+        i.k3,
         cal.rms_px,
         views.len(),
         images.len()
@@ -393,6 +439,10 @@ fn calibrate_camera_command(source: &BoardSource, distortion: bool, fix_pp: bool
     });
     file.save(&source.out)?;
     println!("wrote {}", source.out.display());
+    let yaml = source.out.with_extension("yaml");
+    let text = super::opencv_yaml::camera_yaml(&i, width, height, cal.rms_px);
+    crate::pipeline::export::write_atomic(&yaml, text.as_bytes())?;
+    println!("wrote {} (OpenCV FileStorage)", yaml.display());
     Ok(())
 }
 

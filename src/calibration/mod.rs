@@ -24,6 +24,7 @@ pub mod detect;
 pub mod file;
 mod lm;
 pub mod opencv_xml;
+pub mod opencv_yaml;
 pub mod procam;
 pub mod procam_cloud;
 pub mod procam_file;
