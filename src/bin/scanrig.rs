@@ -61,6 +61,48 @@ struct TriangulateArgs {
     out: PathBuf,
 }
 
+/// `scanrig laser-view` options.
+#[derive(clap::Args, Debug)]
+struct LaserViewArgs {
+    /// Camera intrinsics: a calibration file with `[camera]` or an OpenCV FileStorage YAML/XML.
+    #[arg(long)]
+    intrinsics: PathBuf,
+    /// The laser plane: a calibration file with `[[lasers]]` (see --laser-index) ...
+    #[arg(long, conflicts_with = "plane")]
+    calibration: Option<PathBuf>,
+    /// Which `[[lasers]]` entry of --calibration.
+    #[arg(long, default_value_t = 0)]
+    laser_index: usize,
+    /// ... or the plane itself, nx,ny,nz,d (camera frame, d in millimetres).
+    #[arg(long, allow_hyphen_values = true)]
+    plane: Option<String>,
+    /// The laser-on frame.
+    #[arg(long)]
+    laser: PathBuf,
+    /// The laser-off frame.
+    #[arg(long)]
+    background: PathBuf,
+    /// A frame under white light to colour the points (default: the laser-off frame).
+    #[arg(long)]
+    texture: Option<PathBuf>,
+    /// Laser colour r,g,b.
+    #[arg(long, default_value = "255,0,0")]
+    laser_colour: String,
+    /// Smallest stripe signal, 8-bit levels.
+    #[arg(long, default_value_t = 40.0)]
+    min_peak: f32,
+    /// A plane nx,ny,nz,d (camera frame, d in millimetres; e.g. the turntable top) to check the
+    /// points within --check-band-mm of it against.
+    #[arg(long, allow_hyphen_values = true)]
+    check_plane: Option<String>,
+    /// Half-width of the band around --check-plane, millimetres.
+    #[arg(long, default_value_t = 10.0)]
+    check_band_mm: f64,
+    /// Output point cloud (binary PLY, metres, coloured).
+    #[arg(long)]
+    out: PathBuf,
+}
+
 /// `scanrig calibrate projector` options.
 #[derive(clap::Args, Debug)]
 struct ProjectorArgs {
@@ -192,6 +234,10 @@ enum Command {
     /// coloured point cloud (camera frame, the calibration's length unit); with --board, also measure
     /// the chessboard in view (plane-fit RMS, neighbouring-corner distances against the square).
     Triangulate(TriangulateArgs),
+    /// Triangulate one laser view (laser-on and laser-off frames) on a calibrated laser plane into a
+    /// coloured point cloud (camera frame, metres); optionally check the points near a known plane
+    /// (e.g. the turntable top) against it.
+    LaserView(LaserViewArgs),
     /// Check a rig file and report every problem in it.
     Validate {
         /// The rig file (TOML).
@@ -427,6 +473,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Calibrate { what: CalibrateCommand::Rig(what) } => Ok(scanrig::calibration::cli::run(what)?),
         Command::Calibrate { what: CalibrateCommand::Projector(args) } => calibrate_projector(args),
         Command::Triangulate(args) => triangulate_capture(args),
+        Command::LaserView(args) => laser_view(args),
         Command::Status(d) => {
             let v = d.client()?.get_json("/api/v1/status")?;
             println!("{}", serde_json::to_string_pretty(&v)?);
@@ -710,5 +757,57 @@ fn triangulate_capture(args: TriangulateArgs) -> anyhow::Result<()> {
         );
     }
     println!("wrote {}", req.out.display());
+    Ok(())
+}
+
+fn laser_view(args: LaserViewArgs) -> anyhow::Result<()> {
+    use scanrig::calibration::cli::{load_intrinsics, parse_colour, parse_plane_mm};
+    use scanrig::calibration::laser_board;
+    let (intrinsics, _) = load_intrinsics(&args.intrinsics)?;
+    let plane = match (&args.plane, &args.calibration) {
+        (Some(p), _) => parse_plane_mm(p)?,
+        (None, Some(c)) => {
+            let file = scanrig::calibration::file::CalibrationFile::load(c)?;
+            let l = file.lasers.iter().find(|l| l.index == args.laser_index).with_context(|| {
+                format!("{} has no [[lasers]] entry with index {}", c.display(), args.laser_index)
+            })?;
+            scanrig::pipeline::laser::Plane { normal: l.normal_camera, offset_m: l.offset_camera_m }
+        }
+        (None, None) => anyhow::bail!("give --plane or --calibration"),
+    };
+    let stripe = scanrig::pipeline::laser::StripeParams { min_peak: args.min_peak, ..Default::default() };
+    let cloud = laser_board::laser_view(
+        &intrinsics,
+        &plane,
+        &args.laser,
+        &args.background,
+        args.texture.as_deref(),
+        parse_colour(&args.laser_colour)?,
+        &stripe,
+    )?;
+    println!("{} stripe peaks, {} points triangulated", cloud.peaks, cloud.points.len());
+    if let Some(c) = &args.check_plane {
+        let check = parse_plane_mm(c)?;
+        let band = args.check_band_mm * 1e-3;
+        let d: Vec<f64> = cloud.points.iter().map(|p| check.distance(p)).filter(|d| d.abs() <= band).collect();
+        if d.is_empty() {
+            println!("check plane: no point within {} mm", args.check_band_mm);
+        } else {
+            let mean = d.iter().sum::<f64>() / d.len() as f64;
+            let rms = (d.iter().map(|v| v * v).sum::<f64>() / d.len() as f64).sqrt();
+            let sd = (d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / d.len() as f64).sqrt();
+            println!(
+                "check plane: {} points within {} mm, residual mean {:.3} mm, RMS {:.3} mm, spread (SD) {:.3} mm",
+                d.len(),
+                args.check_band_mm,
+                1e3 * mean,
+                1e3 * rms,
+                1e3 * sd
+            );
+        }
+    }
+    let pts: Vec<[f32; 3]> = cloud.points.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect();
+    scanrig::pipeline::export::write_ply_points(&args.out, &pts, Some(&cloud.colours))?;
+    println!("wrote {}", args.out.display());
     Ok(())
 }

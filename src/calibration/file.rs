@@ -58,11 +58,20 @@ pub struct CalibrationFile {
     /// `[[lights]]`: calibrated white-light positions.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub lights: Vec<LightSection>,
+    /// `[[lasers]]`: calibrated laser planes, camera frame.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub lasers: Vec<LaserSection>,
 }
 
 impl Default for CalibrationFile {
     fn default() -> Self {
-        CalibrationFile { format_version: FORMAT_VERSION, camera: None, turntable: None, lights: Vec::new() }
+        CalibrationFile {
+            format_version: FORMAT_VERSION,
+            camera: None,
+            turntable: None,
+            lights: Vec::new(),
+            lasers: Vec::new(),
+        }
     }
 }
 
@@ -161,6 +170,23 @@ pub struct LightSection {
     pub rms_levels: f64,
     /// Sphere pixels used.
     pub pixels: usize,
+}
+
+/// `[[lasers]]`: one calibrated laser plane `normal_camera · X = offset_camera_m` in the camera frame
+/// (OpenCV axes, metres), from `scanrig calibrate laser`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LaserSection {
+    /// Index of the laser (the rig file's order).
+    pub index: usize,
+    /// Unit normal of the plane, camera frame.
+    pub normal_camera: [f64; 3],
+    /// Signed distance of the plane from the camera centre along the normal, metres.
+    pub offset_camera_m: f64,
+    /// RMS distance of the stripe points from the plane, metres.
+    pub rms_m: f64,
+    /// Stripe points fitted (inliers).
+    pub points: usize,
 }
 
 /// Why a calibration file could not be read or written.
@@ -423,6 +449,13 @@ mod tests {
                 views: 10,
             }),
             lights: vec![LightSection { index: 1, position_m: [0.1, -0.4, 0.2], rms_levels: 1.0, pixels: 400 }],
+            lasers: vec![LaserSection {
+                index: 0,
+                normal_camera: [0.8, 0.0, 0.6],
+                offset_camera_m: 0.16,
+                rms_m: 2e-4,
+                points: 900,
+            }],
         }
     }
 

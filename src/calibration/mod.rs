@@ -22,6 +22,7 @@ pub mod capture;
 pub mod cli;
 pub mod detect;
 pub mod file;
+pub mod laser_board;
 mod lm;
 pub mod opencv_xml;
 pub mod opencv_yaml;
