@@ -91,6 +91,9 @@ struct LaserViewArgs {
     /// Smallest stripe signal, 8-bit levels.
     #[arg(long, default_value_t = 40.0)]
     min_peak: f32,
+    /// Widest accepted run of stripe pixels in a row, pixels.
+    #[arg(long, default_value_t = 8)]
+    max_width_px: u32,
     /// A plane nx,ny,nz,d (camera frame, d in millimetres; e.g. the turntable top) to check the
     /// points within --check-band-mm of it against.
     #[arg(long, allow_hyphen_values = true)]
@@ -775,7 +778,11 @@ fn laser_view(args: LaserViewArgs) -> anyhow::Result<()> {
         }
         (None, None) => anyhow::bail!("give --plane or --calibration"),
     };
-    let stripe = scanrig::pipeline::laser::StripeParams { min_peak: args.min_peak, ..Default::default() };
+    let stripe = scanrig::pipeline::laser::StripeParams {
+        min_peak: args.min_peak,
+        max_width_px: args.max_width_px,
+        ..Default::default()
+    };
     let cloud = laser_board::laser_view(
         &intrinsics,
         &plane,

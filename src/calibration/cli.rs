@@ -419,7 +419,27 @@ fn calibrate_laser_command(job: LaserJob) -> Result<(), WorkflowError> {
             v.peaks,
             v.points.len()
         );
+        if let Some(r) = &job.reference {
+            let near: Vec<f64> =
+                v.points.iter().map(|x| r.distance(x)).filter(|d| d.abs() <= 5.0 * job.inlier_m).collect();
+            let rms = (near.iter().map(|d| d * d).sum::<f64>() / near.len().max(1) as f64).sqrt();
+            let mean = near.iter().sum::<f64>() / near.len().max(1) as f64;
+            println!(
+                "  {} of its board points within {:.1} mm of the published plane: mean {:.3} mm, RMS {:.3} mm",
+                near.len(),
+                5e3 * job.inlier_m,
+                1e3 * mean,
+                1e3 * rms
+            );
+        }
         views.push(v);
+    }
+    if views.iter().filter(|v| !v.points.is_empty()).count() < 2 {
+        return Err(WorkflowError::Argument {
+            arg: "laser",
+            message: "the stripe points of one board pose lie on a line; a laser plane needs two or more board poses"
+                .into(),
+        });
     }
     let fit = fit_laser_plane(&views, job.inlier_m).map_err(laser_error)?;
     let p = fit.plane;

@@ -171,8 +171,8 @@ pub fn board_laser_view(
     let mut found = None;
     let mut first_err = None;
     'search: for (path, g) in &board_frame {
-        for sigma_px in [1.5, 2.5, 4.0] {
-            match detect_chessboard(g, board, &DetectOptions { sigma_px, ..DetectOptions::default() }) {
+        for (sigma_px, min_contrast) in [(1.5, 20.0), (2.5, 20.0), (2.5, 10.0), (4.0, 10.0), (6.0, 8.0), (8.0, 6.0)] {
+            match detect_chessboard(g, board, &DetectOptions { sigma_px, min_contrast, ..DetectOptions::default() }) {
                 Ok(d) => {
                     found = Some((path.clone(), d));
                     break 'search;
