@@ -141,7 +141,16 @@ fn camera_inside_the_grid_keeps_what_is_behind_it() {
     cams.push(CameraModel {
         width: 160,
         height: 120,
-        intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 80.0, cy: 60.0, skew: 0.0, k1: 0.0, k2: 0.0, ..Intrinsics::default() },
+        intrinsics: Intrinsics {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 80.0,
+            cy: 60.0,
+            skew: 0.0,
+            k1: 0.0,
+            k2: 0.0,
+            ..Intrinsics::default()
+        },
         pose: Pose::look_at(Vector3::new(0.0, 0.06, 0.12), Vector3::new(0.1, 0.06, 0.12), Vector3::z()),
     });
     let masks: Vec<Mask> = cams.iter().map(|c| render(c, &shapes)).collect();

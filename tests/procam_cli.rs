@@ -21,13 +21,31 @@ fn sim() -> SimProcam {
         camera: CameraModel {
             width: 640,
             height: 480,
-            intrinsics: Intrinsics { fx: 800.0, fy: 792.0, cx: 323.5, cy: 236.0, skew: 0.0, k1: -0.12, k2: 0.05, ..Intrinsics::default() },
+            intrinsics: Intrinsics {
+                fx: 800.0,
+                fy: 792.0,
+                cx: 323.5,
+                cy: 236.0,
+                skew: 0.0,
+                k1: -0.12,
+                k2: 0.05,
+                ..Intrinsics::default()
+            },
             pose: Pose { rotation: Matrix3::identity(), translation: Vector3::zeros() },
         },
         projector: CameraModel {
             width: 320,
             height: 240,
-            intrinsics: Intrinsics { fx: 420.0, fy: 415.0, cx: 166.0, cy: 131.5, skew: 0.0, k1: -0.06, k2: 0.02, ..Intrinsics::default() },
+            intrinsics: Intrinsics {
+                fx: 420.0,
+                fy: 415.0,
+                cx: 166.0,
+                cy: 131.5,
+                skew: 0.0,
+                k1: -0.06,
+                k2: 0.02,
+                ..Intrinsics::default()
+            },
             pose: Pose::look_at(
                 Vector3::new(0.12, -0.02, 0.0),
                 Vector3::new(0.0, 0.0, 0.6),

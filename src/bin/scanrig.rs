@@ -771,9 +771,10 @@ fn laser_view(args: LaserViewArgs) -> anyhow::Result<()> {
         (Some(p), _) => parse_plane_mm(p)?,
         (None, Some(c)) => {
             let file = scanrig::calibration::file::CalibrationFile::load(c)?;
-            let l = file.lasers.iter().find(|l| l.index == args.laser_index).with_context(|| {
-                format!("{} has no [[lasers]] entry with index {}", c.display(), args.laser_index)
-            })?;
+            let l =
+                file.lasers.iter().find(|l| l.index == args.laser_index).with_context(|| {
+                    format!("{} has no [[lasers]] entry with index {}", c.display(), args.laser_index)
+                })?;
             scanrig::pipeline::laser::Plane { normal: l.normal_camera, offset_m: l.offset_camera_m }
         }
         (None, None) => anyhow::bail!("give --plane or --calibration"),

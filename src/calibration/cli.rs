@@ -37,7 +37,11 @@ fn read_gray(p: &Path) -> Result<GrayImage, WorkflowError> {
         crate::dataset::DatasetError::Read { path, source } => {
             WorkflowError::Io { path, what: "cannot read image", source }
         }
-        other => WorkflowError::Io { path: p.to_owned(), what: "cannot read image", source: std::io::Error::other(other.to_string()) },
+        other => WorkflowError::Io {
+            path: p.to_owned(),
+            what: "cannot read image",
+            source: std::io::Error::other(other.to_string()),
+        },
     })
 }
 
@@ -289,9 +293,7 @@ pub fn run(command: CalibrateCommand) -> Result<(), WorkflowError> {
             calibrate_laser_command(LaserJob {
                 intrinsics,
                 board,
-                patterns: (0..laser.len())
-                    .map(|i| pattern.get(i).filter(|p| p.as_os_str() != "-").cloned())
-                    .collect(),
+                patterns: (0..laser.len()).map(|i| pattern.get(i).filter(|p| p.as_os_str() != "-").cloned()).collect(),
                 pairs: laser.into_iter().zip(background).collect(),
                 colour,
                 stripe,
@@ -323,7 +325,8 @@ fn parse_triple(arg: &'static str, s: &str) -> Result<Vector3<f64>, WorkflowErro
 
 /// Parse a colour `r,g,b` (0..255 each).
 pub fn parse_colour(s: &str) -> Result<[u8; 3], WorkflowError> {
-    let bad = || WorkflowError::Argument { arg: "laser-colour", message: format!("expected r,g,b (0..255), got `{s}`") };
+    let bad =
+        || WorkflowError::Argument { arg: "laser-colour", message: format!("expected r,g,b (0..255), got `{s}`") };
     let v: Vec<u8> = s.split(',').map(|t| t.trim().parse::<u8>()).collect::<Result<_, _>>().map_err(|_| bad())?;
     match v[..] {
         [r, g, b] => Ok([r, g, b]),
@@ -529,9 +532,9 @@ fn load_images(dir: &Path) -> Result<(Vec<BoardImage>, (u32, u32)), WorkflowErro
         .map_err(|e| io("cannot list the image directory", e))?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| {
-            p.extension().and_then(|x| x.to_str()).is_some_and(|x| {
-                IMAGE_EXTENSIONS.iter().any(|e| x.eq_ignore_ascii_case(e))
-            })
+            p.extension()
+                .and_then(|x| x.to_str())
+                .is_some_and(|x| IMAGE_EXTENSIONS.iter().any(|e| x.eq_ignore_ascii_case(e)))
         })
         .collect();
     paths.sort();

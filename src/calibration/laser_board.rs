@@ -158,7 +158,9 @@ pub fn board_laser_view(
     let off = rgb(background)?;
     // Laser frames are exposed for the laser, so the board is dark: stretch the contrast, and try
     // the red channel (a red laser's frames are often exposed for red) and more smoothing.
-    let red = |img: &RgbImage| image::GrayImage::from_fn(img.width(), img.height(), |x, y| image::Luma([img.get_pixel(x, y).0[0]]));
+    let red = |img: &RgbImage| {
+        image::GrayImage::from_fn(img.width(), img.height(), |x, y| image::Luma([img.get_pixel(x, y).0[0]]))
+    };
     let board_frame = match pattern {
         Some(p) => vec![(p.to_path_buf(), to_gray(&rgb(p)?))],
         None => vec![
@@ -203,7 +205,14 @@ pub fn board_laser_view(
         .filter(|pk| inside_quad(&quad, &Point2::new(pk.u, f64::from(pk.v) + 0.5)))
         .filter_map(|pk| plane.intersect(&Vector3::zeros(), &cam.pixel_ray(pk.u, f64::from(pk.v) + 0.5)))
         .collect();
-    Ok(BoardLaserView { laser: laser.to_path_buf(), board_frame: board_path, pose: est.pose, pose_rms_px: est.rms_px, peaks: peaks.len(), points })
+    Ok(BoardLaserView {
+        laser: laser.to_path_buf(),
+        board_frame: board_path,
+        pose: est.pose,
+        pose_rms_px: est.rms_px,
+        peaks: peaks.len(),
+        points,
+    })
 }
 
 /// The board search always tries at least one frame; this only keeps the types honest.
@@ -279,8 +288,11 @@ pub fn read_ply_xyz(path: &Path) -> Result<Vec<Vector3<f64>>, LaserBoardError> {
             out.push(Vector3::new(v[0], v[1], v[2]));
         }
     } else {
-        let sizes: Vec<usize> =
-            props.iter().map(|(t, _)| size(t)).collect::<Option<_>>().ok_or_else(|| bad("unknown property type".into()))?;
+        let sizes: Vec<usize> = props
+            .iter()
+            .map(|(t, _)| size(t))
+            .collect::<Option<_>>()
+            .ok_or_else(|| bad("unknown property type".into()))?;
         let stride: usize = sizes.iter().sum();
         let data = &bytes[body..];
         if data.len() < stride * count {
@@ -341,7 +353,8 @@ pub fn laser_view(
         let Some(p) = plane.intersect(&Vector3::zeros(), &cam.pixel_ray(pk.u, f64::from(pk.v) + 0.5)) else {
             continue;
         };
-        let (x, y) = ((pk.u.floor() as u32).min(tex.width().saturating_sub(1)), pk.v.min(tex.height().saturating_sub(1)));
+        let (x, y) =
+            ((pk.u.floor() as u32).min(tex.width().saturating_sub(1)), pk.v.min(tex.height().saturating_sub(1)));
         points.push(p);
         colours.push(tex.get_pixel(x, y).0);
     }

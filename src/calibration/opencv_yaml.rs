@@ -180,8 +180,11 @@ mod tests {
         let c = parse_camera(xml, Path::new("c.xml")).expect("xml");
         assert_eq!(c.size, Some((640, 480)));
         assert_eq!((c.intrinsics.cx, c.intrinsics.cy, c.intrinsics.k1), (320.0, 240.0, -0.1));
-        let e = parse_camera("%YAML:1.0\nK: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1, 2 ]\n", Path::new("k.yaml"))
-            .expect_err("short");
+        let e = parse_camera(
+            "%YAML:1.0\nK: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1, 2 ]\n",
+            Path::new("k.yaml"),
+        )
+        .expect_err("short");
         assert!(e.to_string().starts_with("k.yaml:2:"), "{e}");
     }
 }

@@ -69,9 +69,7 @@ impl ProcamFile {
             height: self.projector_height,
             intrinsics: self.projector,
             pose: Pose {
-                rotation: Matrix3::new(
-                    r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2],
-                ),
+                rotation: Matrix3::new(r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2]),
                 translation: Vector3::new(self.translation[0], self.translation[1], self.translation[2]),
             },
         };
@@ -168,7 +166,12 @@ pub fn fit_plane(pts: &[Vector3<f64>]) -> Option<(Vector3<f64>, Vector3<f64>)> {
 }
 
 /// Closest-point midpoint of two rays and their gap; `None` when parallel or behind either origin.
-fn ray_midpoint(o1: &Vector3<f64>, d1: &Vector3<f64>, o2: &Vector3<f64>, d2: &Vector3<f64>) -> Option<(Vector3<f64>, f64)> {
+fn ray_midpoint(
+    o1: &Vector3<f64>,
+    d1: &Vector3<f64>,
+    o2: &Vector3<f64>,
+    d2: &Vector3<f64>,
+) -> Option<(Vector3<f64>, f64)> {
     let w = o1 - o2;
     let b = d1.dot(d2);
     let (dd, e) = (d1.dot(&w), d2.dot(&w));
@@ -218,12 +221,8 @@ pub fn run_triangulate(req: &TriangulateRequest) -> Result<TriangulateReport, Pr
     })?;
     let sub = interpolate_stripe_edges(&map, true);
     let scale = |v: Vec<f32>| v.into_iter().map(|x| x * step as f32).collect::<Vec<f32>>();
-    let coords = ProjectorCoords {
-        width: sub.width,
-        height: sub.height,
-        column: scale(sub.column),
-        row: sub.row.map(scale),
-    };
+    let coords =
+        ProjectorCoords { width: sub.width, height: sub.height, column: scale(sub.column), row: sub.row.map(scale) };
     // Tolerances in the calibration's unit, relative to the baseline (the unit is not known).
     let baseline = projector.centre().norm();
     let params = TriangulationParams {
@@ -236,9 +235,8 @@ pub fn run_triangulate(req: &TriangulateRequest) -> Result<TriangulateReport, Pr
         ProcamFileError::ReadFile { path: cap.paths[white_index].clone(), reason: "image size".into() }
     })?;
     let white = image::DynamicImage::ImageLuma8(white_grey).to_rgb8();
-    let range = triangulate(&camera, &projector, &coords, Some(&white), &params).map_err(|e| {
-        ProcamFileError::ReadFile { path: req.procam.clone(), reason: format!("triangulation: {e}") }
-    })?;
+    let range = triangulate(&camera, &projector, &coords, Some(&white), &params)
+        .map_err(|e| ProcamFileError::ReadFile { path: req.procam.clone(), reason: format!("triangulation: {e}") })?;
     let (pts, colours): (Vec<[f32; 3]>, Vec<[u8; 3]>) = range.valid_points().map(|(p, _, c)| (p, c)).unzip();
     write_ply_points(&req.out, &pts, Some(&colours))?;
 
@@ -348,9 +346,13 @@ mod tests {
         let q = [Point2::new(0.0, 0.0), Point2::new(10.0, 0.0), Point2::new(10.0, 10.0), Point2::new(0.0, 10.0)];
         assert!(inside_quad(&q, &Point2::new(5.0, 5.0)));
         assert!(!inside_quad(&q, &Point2::new(11.0, 5.0)));
-        let (m, gap) =
-            ray_midpoint(&Vector3::zeros(), &Vector3::z(), &Vector3::new(1.0, 0.0, 0.0), &Vector3::new(-1.0, 0.0, 1.0).normalize())
-                .expect("meet");
+        let (m, gap) = ray_midpoint(
+            &Vector3::zeros(),
+            &Vector3::z(),
+            &Vector3::new(1.0, 0.0, 0.0),
+            &Vector3::new(-1.0, 0.0, 1.0).normalize(),
+        )
+        .expect("meet");
         assert!((m - Vector3::new(0.0, 0.0, 1.0)).norm() < 1e-12 && gap < 1e-12);
     }
 }

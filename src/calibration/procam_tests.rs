@@ -176,8 +176,18 @@ fn single_pose_extrinsics_with_known_intrinsics() {
 
 #[test]
 fn lens_distortion_round_trips_and_matches_intrinsics() {
-    let l =
-        Intrinsics { fx: 900.0, fy: 880.0, cx: 320.0, cy: 250.0, skew: 0.0, k1: -0.2, k2: 0.1, p1: 1e-3, p2: -2e-3, k3: 0.3 };
+    let l = Intrinsics {
+        fx: 900.0,
+        fy: 880.0,
+        cx: 320.0,
+        cy: 250.0,
+        skew: 0.0,
+        k1: -0.2,
+        k2: 0.1,
+        p1: 1e-3,
+        p2: -2e-3,
+        k3: 0.3,
+    };
     for (x, y) in [(0.1, -0.2), (-0.3, 0.25), (0.0, 0.0)] {
         let q = l.normalised_to_pixel(x, y);
         let (bx, by) = l.pixel_to_normalised(q.x, q.y);

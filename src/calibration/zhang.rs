@@ -381,9 +381,8 @@ pub fn calibrate_camera(
         })
         .collect();
     let m = 2 * all.len();
-    let unpack = |p: &DVector<f64>| {
-        Intrinsics::new(p[0], p[1], p[2], p[3]).with_distortion([p[4], p[5], p[6], p[7], p[8]])
-    };
+    let unpack =
+        |p: &DVector<f64>| Intrinsics::new(p[0], p[1], p[2], p[3]).with_distortion([p[4], p[5], p[6], p[7], p[8]]);
     let res = lm::minimise(DVector::from_vec(p0), &steps, options.max_iterations, |p, r| {
         if r.len() != m {
             *r = DVector::zeros(m);

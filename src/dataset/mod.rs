@@ -667,7 +667,16 @@ mod tests {
         let cam = CameraModel {
             width: 640,
             height: 480,
-            intrinsics: Intrinsics { fx: 900.0, fy: 880.0, cx: 300.0, cy: 250.0, skew: 1.5, k1: 0.0, k2: 0.0, ..Intrinsics::default() },
+            intrinsics: Intrinsics {
+                fx: 900.0,
+                fy: 880.0,
+                cx: 300.0,
+                cy: 250.0,
+                skew: 1.5,
+                k1: 0.0,
+                k2: 0.0,
+                ..Intrinsics::default()
+            },
             pose: Pose::look_at(Vector3::new(0.3, -0.4, 0.2), Vector3::new(0.0, 0.0, 0.05), Vector3::z()),
         };
         for scale in [1.0, -2.5, 0.01] {
