@@ -92,6 +92,48 @@ pub fn load_procam(path: &Path, patterns: (u32, u32), graycode_step: u32) -> Res
     }
 }
 
+/// Apply a procam file (TOML of `scanrig calibrate projector`, translation in metres) to a rig's fbdev
+/// projector: its intrinsics, and its rig-frame pose `x_proj = R_pc (R_c x + t_c) + t_pc` from the
+/// file's projector <- camera transform and the rig camera's pose. The file's projector size must be
+/// the rig's.
+pub fn apply_procam_to_rig(path: &Path, rig: &mut crate::config::RigConfig) -> Result<(), ProcamFileError> {
+    use crate::config::{CameraCalibration, PoseConfig, ProjectorConfig};
+    let file = read_procam_file(path)?;
+    let camera = rig.camera.model();
+    let Some(ProjectorConfig::Fbdev(p)) = rig.projector.as_mut() else { return Ok(()) };
+    if (file.projector_width, file.projector_height) != (p.width, p.height) {
+        return Err(ProcamFileError::ReadFile {
+            path: path.to_path_buf(),
+            reason: format!(
+                "calibrated for a {}x{} projector but the rig's is {}x{}",
+                file.projector_width, file.projector_height, p.width, p.height
+            ),
+        });
+    }
+    if !file.projector.is_valid() {
+        return Err(ProcamFileError::ReadFile {
+            path: path.to_path_buf(),
+            reason: "projector: focal lengths must be positive and every value finite".into(),
+        });
+    }
+    let (_, proj_in_camera) = file.models(camera.width, camera.height);
+    let (r_pc, t_pc) = (proj_in_camera.pose.rotation, proj_in_camera.pose.translation);
+    let rotation = r_pc * camera.pose.rotation;
+    let translation = r_pc * camera.pose.translation + t_pc;
+    p.calibration = Some(CameraCalibration {
+        intrinsics: file.projector,
+        pose: PoseConfig::Matrix {
+            rotation: [
+                [rotation[(0, 0)], rotation[(0, 1)], rotation[(0, 2)]],
+                [rotation[(1, 0)], rotation[(1, 1)], rotation[(1, 2)]],
+                [rotation[(2, 0)], rotation[(2, 1)], rotation[(2, 2)]],
+            ],
+            translation_m: [translation.x, translation.y, translation.z],
+        },
+    });
+    Ok(())
+}
+
 /// What `scanrig triangulate` does.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TriangulateRequest {
@@ -333,6 +375,51 @@ fn check_board(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_rig_projector_takes_its_pose_from_a_procam_file() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cam = crate::geometry::Intrinsics::new(900.0, 900.0, 320.0, 240.0);
+        let proj = crate::geometry::Intrinsics::new(1200.0, 1200.0, 512.0, 700.0).with_distortion([0.1, 0.0, 1e-3, 0.0, 0.0]);
+        let file = ProcamFile {
+            camera: cam,
+            projector: proj,
+            projector_width: 1024,
+            projector_height: 768,
+            graycode_step: 1,
+            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            translation: [-0.2, 0.0, 0.0],
+            camera_rms_px: 0.1,
+            projector_rms_px: 0.2,
+            views: 3,
+        };
+        super::super::procam_file::write_procam_file(&dir.path().join("procam.toml"), &file).expect("write");
+        let rig = std::fs::read_to_string(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/simulated.toml"),
+        )
+        .expect("rig");
+        // Swap the simulated projector (if any) for an fbdev one that names the procam file.
+        let mut doc: toml::Table = toml::from_str(&rig).expect("toml");
+        doc.insert(
+            "projector".into(),
+            toml::Value::Table(toml::from_str("kind = \"fbdev\"\ndevice = \"/dev/fb1\"\nwidth = 1024\nheight = 768\nprocam = \"procam.toml\"\n").expect("table")),
+        );
+        let path = dir.path().join("rig.toml");
+        let text = toml::to_string(&doc).expect("serialise");
+        std::fs::write(&path, &text).expect("write rig");
+        let config = crate::config::load(&path).expect("loads with the procam file");
+        let model = config.projector.as_ref().and_then(|p| p.model()).expect("projector model");
+        assert_eq!(model.intrinsics, proj);
+        // The projector centre is the camera centre moved by the baseline, in the rig frame.
+        let c = config.camera.model();
+        let expected = c.centre() + c.pose.rotation.transpose() * Vector3::new(0.2, 0.0, 0.0);
+        assert!((model.centre() - expected).norm() < 1e-12, "{} vs {expected}", model.centre());
+        // A procam file for another projector size is refused, naming the file.
+        let wrong = text.replace("width = 1024", "width = 800");
+        std::fs::write(&path, wrong).expect("write rig");
+        let e = crate::config::load(&path).expect_err("size mismatch");
+        assert!(format!("{e}").contains("projector.procam"), "{e}");
+    }
 
     #[test]
     fn plane_fit_and_quad_test() {

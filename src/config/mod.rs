@@ -63,6 +63,9 @@ pub enum ConfigError {
         /// Every problem found.
         problems: Vec<Problem>,
     },
+    /// The `[projector] procam` file could not be used.
+    #[error(transparent)]
+    Procam(Box<ProcamConfigError>),
     /// The calibration file named by `[rig] calibration` could not be read or does not fit the rig.
     #[error("{path}:{line}: `rig.calibration`: cannot use the calibration file")]
     Calibration {
@@ -74,6 +77,21 @@ pub enum ConfigError {
         #[source]
         source: crate::calibration::file::CalibrationFileError,
     },
+}
+
+/// The `[projector] procam` file of an fbdev projector could not be read or does not fit the rig.
+#[derive(Debug, thiserror::Error)]
+#[error("{}:{line}: `projector.procam`: cannot use {}", path.display(), file.display())]
+pub struct ProcamConfigError {
+    /// The rig file.
+    pub path: PathBuf,
+    /// 1-based line of the `procam` key.
+    pub line: usize,
+    /// The procam file.
+    pub file: PathBuf,
+    /// Why.
+    #[source]
+    pub source: crate::calibration::procam_file::ProcamFileError,
 }
 
 /// Read, parse and validate a rig file.
@@ -101,6 +119,21 @@ pub fn parse(text: &str, path: &Path) -> Result<RigConfig, ConfigError> {
             locate(text, &mut p);
             ConfigError::Calibration { path: path.to_owned(), line: p[0].line.unwrap_or(1), source }
         })?;
+    }
+    if let Some(ProjectorConfig::Fbdev(p)) = &config.projector {
+        if let Some(rel) = p.procam.clone() {
+            let file = path.parent().map_or(rel.clone(), |d| d.join(&rel));
+            crate::calibration::procam_cloud::apply_procam_to_rig(&file, &mut config).map_err(|source| {
+                let mut pr = [Problem { key: "projector.procam".into(), line: None, message: String::new() }];
+                locate(text, &mut pr);
+                ConfigError::Procam(Box::new(ProcamConfigError {
+                    path: path.to_owned(),
+                    line: pr[0].line.unwrap_or(1),
+                    file,
+                    source,
+                }))
+            })?;
+        }
     }
     Ok(config)
 }
@@ -328,6 +361,9 @@ impl RigConfig {
             Some(ProjectorConfig::Fbdev(p)) => {
                 if let Some(cal) = &p.calibration {
                     check_camera(&mut bad, "projector", p.width, p.height, cal);
+                    if p.procam.is_some() {
+                        bad("projector.procam", "give either `procam` or `[projector.calibration]`, not both".into());
+                    }
                 }
                 crate::devices::hardware::validate_fbdev(p, &mut bad);
             }

@@ -9,7 +9,11 @@
 //!   decomposition (`K` upper triangular with a positive diagonal, `R` a rotation). Blank lines and
 //!   lines starting with `#` are ignored.
 //!
-//! Cameras have no lens distortion in either format. Image names are relative to the data set directory.
+//! - **COLMAP text model**: a directory with `cameras.txt` and `images.txt` (see [`parse_colmap`]),
+//!   with the models' lens distortion.
+//!
+//! Cameras have no lens distortion in the first two formats. Image names are relative to the data set
+//! directory.
 //!
 //! # View selections
 //! Either a file with one image name per line (blank lines and `#` comments ignored), or a
@@ -151,6 +155,16 @@ pub enum DatasetError {
         expected_width: u32,
         /// Image height, px.
         expected_height: u32,
+    },
+    /// A COLMAP camera model this project's lens model cannot represent.
+    #[error("{path}:{line}: camera model {model} is not supported (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV with k4..k6 = 0)")]
+    UnsupportedCameraModel {
+        /// The cameras.txt file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+        /// The model name.
+        model: String,
     },
     /// A depth map is not a single-channel 16-bit PNG.
     #[error("{path}: a depth map must be a single-channel 16-bit PNG in millimetres, found {found}")]
@@ -378,9 +392,113 @@ pub fn parse_projections(text: &str, path: &Path) -> Result<Vec<Calibration>, Da
         .collect()
 }
 
-/// Read a calibration file: the Middlebury format when the first content line is a single integer,
-/// projection matrices otherwise.
+/// Parse COLMAP's text model: `cameras.txt` (`CAMERA_ID MODEL WIDTH HEIGHT PARAMS..`; models
+/// SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV with k4..k6 = 0) and
+/// `images.txt` (pairs of lines, `IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME` then the 2-D points,
+/// ignored). The quaternion and translation are world -> camera (`x_cam = R x + t`), COLMAP's
+/// convention; its pixel convention (the top-left pixel's centre at (0.5, 0.5)) is this project's.
+/// Lines are named in errors by file and number.
+pub fn parse_colmap(
+    cameras: &str,
+    cameras_path: &Path,
+    images: &str,
+    images_path: &Path,
+) -> Result<Vec<Calibration>, DatasetError> {
+    let mut cams = std::collections::HashMap::new();
+    for (line, l) in content_lines(cameras) {
+        let t: Vec<&str> = l.split_whitespace().collect();
+        if t.len() < 5 {
+            return Err(DatasetError::ValueCount { path: cameras_path.to_path_buf(), line, expected: 5, found: t.len() });
+        }
+        let v = parse_numbers(cameras_path, line, &t[4..])?;
+        let need = |n: usize| {
+            if v.len() == n {
+                Ok(())
+            } else {
+                Err(DatasetError::ValueCount { path: cameras_path.to_path_buf(), line, expected: 4 + n, found: t.len() })
+            }
+        };
+        let intr = match t[1] {
+            "SIMPLE_PINHOLE" => need(3).map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]))?,
+            "PINHOLE" => need(4).map(|_| Intrinsics::new(v[0], v[1], v[2], v[3]))?,
+            "SIMPLE_RADIAL" => {
+                need(4).map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]).with_distortion([v[3], 0.0, 0.0, 0.0, 0.0]))?
+            }
+            "RADIAL" => {
+                need(5).map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]).with_distortion([v[3], v[4], 0.0, 0.0, 0.0]))?
+            }
+            "OPENCV" => need(8)
+                .map(|_| Intrinsics::new(v[0], v[1], v[2], v[3]).with_distortion([v[4], v[5], v[6], v[7], 0.0]))?,
+            "FULL_OPENCV" if v.len() == 12 && v[9..12].iter().all(|x| *x == 0.0) => {
+                Intrinsics::new(v[0], v[1], v[2], v[3]).with_distortion([v[4], v[5], v[6], v[7], v[8]])
+            }
+            other => {
+                return Err(DatasetError::UnsupportedCameraModel {
+                    path: cameras_path.to_path_buf(),
+                    line,
+                    model: other.to_string(),
+                })
+            }
+        };
+        cams.insert(t[0].to_string(), intr);
+    }
+    let mut out = Vec::new();
+    let mut expect_header = true;
+    for (line, l) in images.lines().enumerate().map(|(n, l)| (n + 1, l.trim())) {
+        if l.starts_with('#') {
+            continue;
+        }
+        if !expect_header {
+            expect_header = true; // the 2-D points line (possibly empty)
+            continue;
+        }
+        if l.is_empty() {
+            continue;
+        }
+        expect_header = false;
+        let t: Vec<&str> = l.split_whitespace().collect();
+        if t.len() < 10 {
+            return Err(DatasetError::ValueCount { path: images_path.to_path_buf(), line, expected: 10, found: t.len() });
+        }
+        let v = parse_numbers(images_path, line, &t[1..8])?;
+        let q = nalgebra::Quaternion::new(v[0], v[1], v[2], v[3]);
+        if !(q.norm() > 1e-12) {
+            return Err(DatasetError::DegenerateProjection { path: images_path.to_path_buf(), line });
+        }
+        let rotation = nalgebra::UnitQuaternion::from_quaternion(q).to_rotation_matrix().into_inner();
+        let intrinsics = *cams.get(t[8]).ok_or_else(|| DatasetError::UnknownView {
+            source_name: format!("{}:{line}: camera id {} is not in {}", images_path.display(), t[8], cameras_path.display()),
+            name: t[9..].join(" "),
+        })?;
+        out.push(Calibration {
+            name: t[9..].join(" "),
+            intrinsics,
+            pose: Pose { rotation, translation: Vector3::new(v[4], v[5], v[6]) },
+            line,
+        });
+    }
+    if out.is_empty() {
+        return Err(DatasetError::NoViews { path: images_path.to_path_buf() });
+    }
+    Ok(out)
+}
+
+/// Read a calibration: a COLMAP text model when `path` is a directory holding `cameras.txt` and
+/// `images.txt` (or one of those two files); otherwise a file, in the Middlebury format when the
+/// first content line is a single integer, projection matrices otherwise.
 pub fn read_calibration(path: &Path) -> Result<Vec<Calibration>, DatasetError> {
+    let colmap_dir = if path.is_dir() {
+        Some(path.to_path_buf())
+    } else {
+        match path.file_name().and_then(|n| n.to_str()) {
+            Some("cameras.txt" | "images.txt") => path.parent().map(Path::to_path_buf),
+            _ => None,
+        }
+    };
+    if let Some(dir) = colmap_dir {
+        let (c, i) = (dir.join("cameras.txt"), dir.join("images.txt"));
+        return parse_colmap(&read_text(&c)?, &c, &read_text(&i)?, &i);
+    }
     let text = read_text(path)?;
     let first = content_lines(&text).next().map(|(_, l)| l.split_whitespace().count() == 1).unwrap_or(false);
     if first {
@@ -728,6 +846,34 @@ mod tests {
         let x = axes_convergence_point(&cams).expect("converge");
         assert!((x - scene).norm() < 1e-9, "{x}");
         assert!(axes_convergence_point(&cams[..1]).is_none());
+    }
+
+    #[test]
+    fn colmap_text_model_matches_the_cameras_it_was_written_from() {
+        let cam = CameraModel {
+            width: 640,
+            height: 480,
+            intrinsics: Intrinsics::new(900.0, 880.0, 300.0, 250.0).with_distortion([-0.1, 0.02, 1e-3, -1e-3, 0.0]),
+            pose: Pose::look_at(Vector3::new(0.3, -0.4, 0.2), Vector3::new(0.0, 0.0, 0.05), Vector3::z()),
+        };
+        let q = nalgebra::UnitQuaternion::from_matrix(&cam.pose.rotation);
+        let t = cam.pose.translation;
+        let cameras = "# Camera list\n1 OPENCV 640 480 900 880 300 250 -0.1 0.02 0.001 -0.001\n2 SIMPLE_PINHOLE 640 480 500 320 240\n";
+        let images = format!(
+            "# Image list\n1 {} {} {} {} {} {} {} 1 a.png\n10 20 -1\n2 1 0 0 0 0 0 1 2 b c.png\n\n",
+            q.w, q.i, q.j, q.k, t.x, t.y, t.z
+        );
+        let c = parse_colmap(cameras, Path::new("cameras.txt"), &images, Path::new("images.txt")).expect("parses");
+        assert_eq!(c.len(), 2);
+        assert_eq!(c[1].name, "b c.png");
+        let m = c[0].camera(640, 480);
+        let p = Vector3::new(0.01, 0.02, 0.04);
+        let (a, b) = (cam.project(&p).expect("a"), m.project(&p).expect("b"));
+        assert!((a - b).norm() < 1e-9, "{a} {b}");
+        assert_eq!(c[1].intrinsics.fx, 500.0);
+        let e = parse_colmap("1 FISHEYE 640 480 1 2 3 4\n", Path::new("cameras.txt"), &images, Path::new("images.txt"))
+            .expect_err("model");
+        assert!(e.to_string().starts_with("cameras.txt:1: camera model FISHEYE"), "{e}");
     }
 
     #[test]
