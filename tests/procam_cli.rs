@@ -101,7 +101,7 @@ fn calibrate_projector_cli_on_simulated_captures() {
     }
     let out = tmp.path().join("procam.toml");
     args.extend(
-        ["--board", "9x6", "--square", "0.025", "--projector", "320x240", "--out"].iter().map(|s| s.to_string()),
+        ["--board", "9x6", "--square-mm", "25", "--projector", "320x240", "--out"].iter().map(|s| s.to_string()),
     );
     args.push(out.display().to_string());
     let run = Command::new(env!("CARGO_BIN_EXE_scanrig")).args(&args).output().expect("run scanrig");
@@ -135,7 +135,7 @@ fn calibrate_projector_cli_on_simulated_captures() {
     let run = Command::new(env!("CARGO_BIN_EXE_scanrig"))
         .args(["calibrate", "projector", "--captures"])
         .arg(&short)
-        .args(["--board", "9x6", "--square", "0.025", "--projector", "320x240", "--out"])
+        .args(["--board", "9x6", "--square-mm", "25", "--projector", "320x240", "--out"])
         .arg(tmp.path().join("x.toml"))
         .output()
         .expect("run scanrig");

@@ -115,9 +115,12 @@ struct ProjectorArgs {
     /// Board inner corners COLSxROWS.
     #[arg(long)]
     board: String,
-    /// Square size, in the unit the translation should come out in (metres for the rig).
+    /// Square size, millimetres (the translation is written in metres, as a rig's `procam` needs).
     #[arg(long)]
-    square: f64,
+    square_mm: f64,
+    /// Length of one unit of the --reference file's translation, millimetres.
+    #[arg(long, default_value_t = 1.0)]
+    reference_unit_mm: f64,
     /// Gray-code pattern resolution WIDTHxHEIGHT, pixels.
     #[arg(long, default_value = "1024x768")]
     projector: String,
@@ -644,7 +647,8 @@ fn calibrate_projector(args: ProjectorArgs) -> anyhow::Result<()> {
     let ProjectorArgs {
         captures,
         board,
-        square,
+        square_mm,
+        reference_unit_mm,
         projector,
         graycode_step,
         camera_calib,
@@ -656,7 +660,8 @@ fn calibrate_projector(args: ProjectorArgs) -> anyhow::Result<()> {
     } = args;
     let (cols, rows) = parse_size(&board, "--board")?;
     let board =
-        scanrig::calibration::BoardSpec::new(cols as usize, rows as usize, square).context("--board/--square")?;
+        scanrig::calibration::BoardSpec::new(cols as usize, rows as usize, square_mm * 1e-3)
+            .context("--board/--square-mm")?;
     let mut view = scanrig::calibration::procam::ProcamViewOptions::default();
     view.decode.black_threshold = black_threshold;
     view.decode.white_threshold = white_threshold;
@@ -671,6 +676,7 @@ fn calibrate_projector(args: ProjectorArgs) -> anyhow::Result<()> {
         view,
         camera_calib,
         reference,
+        reference_unit_m: reference_unit_mm * 1e-3,
         intrinsics_from_reference,
     };
     let report = run_procam(&req)?;

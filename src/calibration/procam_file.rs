@@ -109,6 +109,9 @@ pub struct ProcamRequest {
     pub camera_calib: Option<PathBuf>,
     /// A published OpenCV `calibration_result.xml` to compare with.
     pub reference: Option<PathBuf>,
+    /// Length of one unit of the reference's translation in the board's unit (metres when the square
+    /// size is in metres; 1 when both use the same unit).
+    pub reference_unit_m: f64,
     /// Hold both devices' intrinsics at the reference's (one pose then suffices).
     pub intrinsics_from_reference: bool,
 }
@@ -155,7 +158,12 @@ fn read_camera_file(path: &Path) -> Result<Intrinsics, ProcamFileError> {
 /// Load, decode and calibrate; write nothing.
 pub fn run_procam(req: &ProcamRequest) -> Result<ProcamReport, ProcamFileError> {
     let patterns = GrayCodePatterns::new(req.patterns.0, req.patterns.1)?;
-    let reference = req.reference.as_deref().map(ReferenceCalibration::load).transpose()?;
+    let reference = req
+        .reference
+        .as_deref()
+        .map(ReferenceCalibration::load)
+        .transpose()?
+        .map(|r| ReferenceCalibration { translation: r.translation * req.reference_unit_m, ..r });
     let mut views: Vec<ProcamView> = Vec::new();
     let mut stats = Vec::new();
     for dir in &req.captures {
