@@ -659,9 +659,8 @@ fn calibrate_projector(args: ProjectorArgs) -> anyhow::Result<()> {
         out,
     } = args;
     let (cols, rows) = parse_size(&board, "--board")?;
-    let board =
-        scanrig::calibration::BoardSpec::new(cols as usize, rows as usize, square_mm * 1e-3)
-            .context("--board/--square-mm")?;
+    let board = scanrig::calibration::BoardSpec::new(cols as usize, rows as usize, square_mm * 1e-3)
+        .context("--board/--square-mm")?;
     let mut view = scanrig::calibration::procam::ProcamViewOptions::default();
     view.decode.black_threshold = black_threshold;
     view.decode.white_threshold = white_threshold;

@@ -325,7 +325,7 @@ fn check_board(
             }
         }
     }
-    let (n, centroid) = fit_plane(&inside).ok_or_else(|| few())?;
+    let (n, centroid) = fit_plane(&inside).ok_or_else(few)?;
     let dists: Vec<f64> = inside.iter().map(|p| (p - centroid).dot(&n)).collect();
     let plane_rms = (dists.iter().map(|d| d * d).sum::<f64>() / dists.len() as f64).sqrt();
     let plane_max = dists.iter().fold(0.0f64, |m, d| m.max(d.abs()));
@@ -380,7 +380,8 @@ mod tests {
     fn a_rig_projector_takes_its_pose_from_a_procam_file() {
         let dir = tempfile::tempdir().expect("tempdir");
         let cam = crate::geometry::Intrinsics::new(900.0, 900.0, 320.0, 240.0);
-        let proj = crate::geometry::Intrinsics::new(1200.0, 1200.0, 512.0, 700.0).with_distortion([0.1, 0.0, 1e-3, 0.0, 0.0]);
+        let proj =
+            crate::geometry::Intrinsics::new(1200.0, 1200.0, 512.0, 700.0).with_distortion([0.1, 0.0, 1e-3, 0.0, 0.0]);
         let file = ProcamFile {
             camera: cam,
             projector: proj,
@@ -402,7 +403,12 @@ mod tests {
         let mut doc: toml::Table = toml::from_str(&rig).expect("toml");
         doc.insert(
             "projector".into(),
-            toml::Value::Table(toml::from_str("kind = \"fbdev\"\ndevice = \"/dev/fb1\"\nwidth = 1024\nheight = 768\nprocam = \"procam.toml\"\n").expect("table")),
+            toml::Value::Table(
+                toml::from_str(
+                    "kind = \"fbdev\"\ndevice = \"/dev/fb1\"\nwidth = 1024\nheight = 768\nprocam = \"procam.toml\"\n",
+                )
+                .expect("table"),
+            ),
         );
         let path = dir.path().join("rig.toml");
         let text = toml::to_string(&doc).expect("serialise");

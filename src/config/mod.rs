@@ -300,7 +300,7 @@ impl RigConfig {
                 if !(k.fx.is_finite() && k.fx > 0.0 && k.fy.is_finite() && k.fy > 0.0) {
                     bad(&format!("{section}.calibration.intrinsics.fx"), "focal lengths must be positive".into());
                 }
-                if ![k.cx, k.cy, k.skew, k.k1, k.k2].iter().all(|v| v.is_finite()) {
+                if ![k.cx, k.cy, k.skew].iter().chain(k.distortion().iter()).all(|v| v.is_finite()) {
                     bad(&format!("{section}.calibration.intrinsics"), "values must be finite".into());
                 }
                 match &cal.pose {

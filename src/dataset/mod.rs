@@ -349,7 +349,8 @@ pub fn axes_convergence_point(projections: &[nalgebra::Matrix3x4<f64>]) -> Optio
     }
     let eig = a.symmetric_eigen();
     let smallest = eig.eigenvalues.iter().copied().fold(f64::INFINITY, f64::min);
-    if projections.len() < 2 || !(smallest > 1e-6 * projections.len() as f64) {
+    let well_conditioned = smallest > 1e-6 * projections.len() as f64;
+    if projections.len() < 2 || !well_conditioned {
         return None;
     }
     a.try_inverse().map(|inv| inv * b).filter(|x| x.iter().all(|v| v.is_finite()))
@@ -408,38 +409,47 @@ pub fn parse_colmap(
     for (line, l) in content_lines(cameras) {
         let t: Vec<&str> = l.split_whitespace().collect();
         if t.len() < 5 {
-            return Err(DatasetError::ValueCount { path: cameras_path.to_path_buf(), line, expected: 5, found: t.len() });
+            return Err(DatasetError::ValueCount {
+                path: cameras_path.to_path_buf(),
+                line,
+                expected: 5,
+                found: t.len(),
+            });
         }
         let v = parse_numbers(cameras_path, line, &t[4..])?;
         let need = |n: usize| {
             if v.len() == n {
                 Ok(())
             } else {
-                Err(DatasetError::ValueCount { path: cameras_path.to_path_buf(), line, expected: 4 + n, found: t.len() })
-            }
-        };
-        let intr = match t[1] {
-            "SIMPLE_PINHOLE" => need(3).map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]))?,
-            "PINHOLE" => need(4).map(|_| Intrinsics::new(v[0], v[1], v[2], v[3]))?,
-            "SIMPLE_RADIAL" => {
-                need(4).map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]).with_distortion([v[3], 0.0, 0.0, 0.0, 0.0]))?
-            }
-            "RADIAL" => {
-                need(5).map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]).with_distortion([v[3], v[4], 0.0, 0.0, 0.0]))?
-            }
-            "OPENCV" => need(8)
-                .map(|_| Intrinsics::new(v[0], v[1], v[2], v[3]).with_distortion([v[4], v[5], v[6], v[7], 0.0]))?,
-            "FULL_OPENCV" if v.len() == 12 && v[9..12].iter().all(|x| *x == 0.0) => {
-                Intrinsics::new(v[0], v[1], v[2], v[3]).with_distortion([v[4], v[5], v[6], v[7], v[8]])
-            }
-            other => {
-                return Err(DatasetError::UnsupportedCameraModel {
+                Err(DatasetError::ValueCount {
                     path: cameras_path.to_path_buf(),
                     line,
-                    model: other.to_string(),
+                    expected: 4 + n,
+                    found: t.len(),
                 })
             }
         };
+        let intr =
+            match t[1] {
+                "SIMPLE_PINHOLE" => need(3).map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]))?,
+                "PINHOLE" => need(4).map(|_| Intrinsics::new(v[0], v[1], v[2], v[3]))?,
+                "SIMPLE_RADIAL" => need(4)
+                    .map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]).with_distortion([v[3], 0.0, 0.0, 0.0, 0.0]))?,
+                "RADIAL" => need(5)
+                    .map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]).with_distortion([v[3], v[4], 0.0, 0.0, 0.0]))?,
+                "OPENCV" => need(8)
+                    .map(|_| Intrinsics::new(v[0], v[1], v[2], v[3]).with_distortion([v[4], v[5], v[6], v[7], 0.0]))?,
+                "FULL_OPENCV" if v.len() == 12 && v[9..12].iter().all(|x| *x == 0.0) => {
+                    Intrinsics::new(v[0], v[1], v[2], v[3]).with_distortion([v[4], v[5], v[6], v[7], v[8]])
+                }
+                other => {
+                    return Err(DatasetError::UnsupportedCameraModel {
+                        path: cameras_path.to_path_buf(),
+                        line,
+                        model: other.to_string(),
+                    })
+                }
+            };
         cams.insert(t[0].to_string(), intr);
     }
     let mut out = Vec::new();
@@ -458,16 +468,27 @@ pub fn parse_colmap(
         expect_header = false;
         let t: Vec<&str> = l.split_whitespace().collect();
         if t.len() < 10 {
-            return Err(DatasetError::ValueCount { path: images_path.to_path_buf(), line, expected: 10, found: t.len() });
+            return Err(DatasetError::ValueCount {
+                path: images_path.to_path_buf(),
+                line,
+                expected: 10,
+                found: t.len(),
+            });
         }
         let v = parse_numbers(images_path, line, &t[1..8])?;
         let q = nalgebra::Quaternion::new(v[0], v[1], v[2], v[3]);
-        if !(q.norm() > 1e-12) {
+        let usable = q.norm() > 1e-12;
+        if !usable {
             return Err(DatasetError::DegenerateProjection { path: images_path.to_path_buf(), line });
         }
         let rotation = nalgebra::UnitQuaternion::from_quaternion(q).to_rotation_matrix().into_inner();
         let intrinsics = *cams.get(t[8]).ok_or_else(|| DatasetError::UnknownView {
-            source_name: format!("{}:{line}: camera id {} is not in {}", images_path.display(), t[8], cameras_path.display()),
+            source_name: format!(
+                "{}:{line}: camera id {} is not in {}",
+                images_path.display(),
+                t[8],
+                cameras_path.display()
+            ),
             name: t[9..].join(" "),
         })?;
         out.push(Calibration {
