@@ -277,8 +277,7 @@ mod tests {
     #[test]
     fn projection_matrix_matches_project_without_distortion() {
         let mut c = cam();
-        c.intrinsics.k1 = 0.0;
-        c.intrinsics.k2 = 0.0;
+        c.intrinsics = c.intrinsics.pinhole();
         let p = Vector3::new(0.01, -0.02, 0.03);
         let h = c.projection_matrix() * p.push(1.0);
         let q = c.project(&p).expect("in front");
