@@ -898,6 +898,44 @@ mod tests {
     }
 
     #[test]
+    fn every_image_format_reads_and_depth_pngs_are_millimetres() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let rgb = RgbImage::from_fn(5, 4, |x, y| image::Rgb([x as u8 * 40, y as u8 * 60, 7]));
+        // Saved under misleading extensions: the content decides the format.
+        for (name, fmt) in [
+            ("a.ppm", image::ImageFormat::Pnm),
+            ("b.tif", image::ImageFormat::Tiff),
+            ("c.bmp", image::ImageFormat::Bmp),
+            ("d.img", image::ImageFormat::Png),
+        ] {
+            let path = dir.path().join(name);
+            rgb.save_with_format(&path, fmt).expect("save");
+            assert_eq!(load_rgb(&path).expect(name), rgb, "{name}");
+        }
+        let grey16 = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(3, 2, |x, y| {
+            image::Luma([(x + 3 * y) as u16 * 1000])
+        });
+        let depth = dir.path().join("depth.png");
+        grey16.save(&depth).expect("save 16-bit");
+        let d = load_depth_png_mm(&depth).expect("depth");
+        assert_eq!((d.width, d.height), (3, 2));
+        assert_eq!(d.depth_m, vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0]);
+        // A 16-bit PNG also reads as an image (scaled to 8 bits).
+        assert_eq!(
+            load_gray(&depth).expect("grey").get_pixel(2, 1).0[0],
+            ((5000.0f64 / 65535.0) * 255.0).round() as u8
+        );
+        let e = load_depth_png_mm(&dir.path().join("a.ppm")).expect_err("not a PNG");
+        assert!(matches!(e, DatasetError::DepthFormat { .. }) && e.to_string().contains("a.ppm"), "{e}");
+        let e = load_depth_png_mm(&dir.path().join("d.img")).expect_err("8-bit RGB");
+        assert!(e.to_string().contains("d.img") && e.to_string().contains("16-bit"), "{e}");
+        let junk = dir.path().join("junk.png");
+        std::fs::write(&junk, b"not an image at all").expect("write");
+        let e = load_rgb(&junk).expect_err("junk");
+        assert!(e.to_string().contains("junk.png"), "{e}");
+    }
+
+    #[test]
     fn par_errors_name_the_line() {
         let p = Path::new("x_par.txt");
         let ok = "1\nimg.png 1 0 2 0 1 3 0 0 1 1 0 0 0 1 0 0 0 1 0.1 0.2 0.3\n";
