@@ -59,7 +59,16 @@ fn synthetic(n_views: usize) -> Scene {
             CameraModel {
                 width: 640,
                 height: 480,
-                intrinsics: Intrinsics { fx: 1400.0, fy: 1400.0, cx: 320.0, cy: 240.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+                intrinsics: Intrinsics {
+                    fx: 1400.0,
+                    fy: 1400.0,
+                    cx: 320.0,
+                    cy: 240.0,
+                    skew: 0.0,
+                    k1: 0.0,
+                    k2: 0.0,
+                    ..Intrinsics::default()
+                },
                 pose: Pose::look_at(
                     Vector3::new(0.5 * a.cos(), 0.5 * a.sin(), h),
                     Vector3::new(0.0, 0.0, 0.05),

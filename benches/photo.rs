@@ -47,7 +47,16 @@ fn views(n: usize) -> (Vec<CameraModel>, Vec<RgbImage>) {
             CameraModel {
                 width: 640,
                 height: 480,
-                intrinsics: Intrinsics { fx: 1600.0, fy: 1600.0, cx: 320.0, cy: 240.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+                intrinsics: Intrinsics {
+                    fx: 1600.0,
+                    fy: 1600.0,
+                    cx: 320.0,
+                    cy: 240.0,
+                    skew: 0.0,
+                    k1: 0.0,
+                    k2: 0.0,
+                    ..Intrinsics::default()
+                },
                 pose: Pose::look_at(eye, c, Vector3::z()),
             }
         })

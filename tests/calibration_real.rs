@@ -2,8 +2,10 @@
 //! projector-camera Gray-code sample set of kamino410/procam-calibration (camera 1280x1024,
 //! chessboard 9x7 inner corners, 75 mm squares... the set states "75 units"; we take millimetres).
 //!
-//! Needs `SCANRIG_GRAYCODE_DATA` pointing at the directory holding `capture_0/` and
+//! Reads `../shared/data/procam-graycode-chessboard` (`capture_0/` and
 //! `calibration_result.xml`; skips with a message when it is unset.
+
+mod shared_data;
 
 use std::path::PathBuf;
 
@@ -12,14 +14,9 @@ use scanrig::calibration::{
 };
 use scanrig::geometry::Intrinsics;
 
+/// `../shared/data/procam-graycode-chessboard` (fails under CI when missing, see `shared_data`).
 fn data_dir() -> Option<PathBuf> {
-    match std::env::var_os("SCANRIG_GRAYCODE_DATA") {
-        Some(d) => Some(PathBuf::from(d)),
-        None => {
-            println!("skipped: set SCANRIG_GRAYCODE_DATA to the procam Gray-code chessboard capture directory");
-            None
-        }
-    }
+    shared_data::dataset("procam-graycode-chessboard")
 }
 
 /// The numbers of an OpenCV FileStorage matrix `<name ...><data> ... </data>`.
@@ -44,7 +41,8 @@ fn real_chessboard_is_detected_and_reprojects_with_published_intrinsics() {
     let xml = std::fs::read_to_string(dir.join("calibration_result.xml")).expect("calibration_result.xml");
     let k = xml_matrix(&xml, "cam_int");
     let d = xml_matrix(&xml, "cam_dist");
-    let published = Intrinsics { fx: k[0], fy: k[4], cx: k[2], cy: k[5], skew: 0.0, k1: d[0], k2: d[1] };
+    let published =
+        Intrinsics { fx: k[0], fy: k[4], cx: k[2], cy: k[5], skew: 0.0, k1: d[0], k2: d[1], ..Intrinsics::default() };
     let est = estimate_pose(&published, &view).expect("pose");
     println!(
         "real board: {} candidates, board origin at ({:.3}, {:.3}, {:.3}) m, RMS with published intrinsics {:.3} px",

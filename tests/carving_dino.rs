@@ -2,6 +2,8 @@
 //! `tests/fixtures/dino/`: the calibration file, the list of the 15 views with usable silhouettes, and
 //! the recipe masks (threshold 0.19 on max(R,G,B), dilate 10 px, erode 7 px) stored as 1-bit PNGs.
 
+mod shared_data;
+
 use std::path::{Path, PathBuf};
 
 use scanrig::dataset::{self, Dataset, DatasetOptions, MaskSource, ViewSelection};
@@ -106,17 +108,13 @@ fn dino_mesh_is_watertight() {
     assert!(v > 0.0 && (v - vox).abs() / vox < 0.15, "mesh {v} m3, voxels {vox} m3");
 }
 
-/// Regenerates the fixture masks from the full data set:
-/// `SCANRIG_DINO_DIR=/path/to/dinoSparseRing cargo test --test carving_dino -- --ignored`.
-/// It also checks that the recipe masks it extracts equal the stored ones.
+/// The recipe masks extracted from the full data set (`../shared/data/middlebury-dino-sparse-ring`)
+/// equal the stored fixture masks. With `SCANRIG_REGENERATE_DINO_MASKS=1` it first rewrites the
+/// fixture masks from the data set.
 #[test]
-#[ignore]
-fn regenerate_fixture_masks() {
-    let Some(src) = std::env::var_os("SCANRIG_DINO_DIR") else {
-        eprintln!("SCANRIG_DINO_DIR not set");
-        return;
-    };
-    let src = PathBuf::from(src);
+fn fixture_masks_match_the_data_set() {
+    let Some(src) = shared_data::dataset("middlebury-dino-sparse-ring") else { return };
+    let regenerate = std::env::var_os("SCANRIG_REGENERATE_DINO_MASKS").is_some();
     let ds = dataset::load(&DatasetOptions {
         dir: src.clone(),
         calibration: Some(src.join("dinoSR_par.txt")),
@@ -127,7 +125,7 @@ fn regenerate_fixture_masks() {
     .expect("the full data set loads");
     let out = fixture_dir().join("masks");
     std::fs::create_dir_all(&out).expect("mask directory");
-    for v in &ds.views {
+    for v in ds.views.iter().filter(|_| regenerate) {
         let stem = Path::new(&v.name).file_stem().and_then(|s| s.to_str()).expect("stem").to_string();
         let (w, h) = (v.mask.width(), v.mask.height());
         let mut packed = vec![0u8; (w as usize).div_ceil(8) * h as usize];

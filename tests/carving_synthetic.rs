@@ -71,7 +71,7 @@ fn ring(n: usize, distance: f64, k1: f64, k2: f64, focal: f64) -> Vec<CameraMode
             CameraModel {
                 width: 160,
                 height: 120,
-                intrinsics: Intrinsics { fx: focal, fy: focal, cx: 80.0, cy: 60.0, skew: 0.0, k1, k2 },
+                intrinsics: Intrinsics { k1, k2, ..Intrinsics::new(focal, focal, 80.0, 60.0) },
                 pose: Pose::look_at(eye, Vector3::new(0.0, 0.0, 0.05), Vector3::z()),
             }
         })
@@ -127,6 +127,18 @@ fn hierarchical_equals_dense_with_distortion() {
 }
 
 #[test]
+fn hierarchical_equals_dense_with_tangential_and_k3_distortion() {
+    // OpenCV's full five-term model: the carver's cells fall back to per-voxel tests where the
+    // interval bound (radial k1, k2 only) does not hold, and must still equal the dense reference.
+    let mut cams = ring(9, 0.45, -0.2, 0.05, 270.0);
+    for (i, c) in cams.iter_mut().enumerate() {
+        let s = if i % 2 == 0 { 1.0 } else { -1.0 };
+        c.intrinsics = c.intrinsics.with_distortion([-0.2, 0.05, 2e-3 * s, -1.5e-3, 0.04 * s]);
+    }
+    check_exact(&cams, 48, 0.3);
+}
+
+#[test]
 fn hierarchical_equals_dense_partly_out_of_frame() {
     // Close cameras with long lenses: the object overflows the image in every view.
     check_exact(&ring(9, 0.25, 0.0, 0.0, 420.0), 61, 0.1);
@@ -141,7 +153,16 @@ fn camera_inside_the_grid_keeps_what_is_behind_it() {
     cams.push(CameraModel {
         width: 160,
         height: 120,
-        intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 80.0, cy: 60.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+        intrinsics: Intrinsics {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 80.0,
+            cy: 60.0,
+            skew: 0.0,
+            k1: 0.0,
+            k2: 0.0,
+            ..Intrinsics::default()
+        },
         pose: Pose::look_at(Vector3::new(0.0, 0.06, 0.12), Vector3::new(0.1, 0.06, 0.12), Vector3::z()),
     });
     let masks: Vec<Mask> = cams.iter().map(|c| render(c, &shapes)).collect();

@@ -1,6 +1,8 @@
 //! Gray-code decoding: round trips through generated patterns, the real capture crop in the
-//! fixtures, bad inputs, and (when `SCANRIG_GRAYCODE_DATA` points at the full capture: a directory
+//! fixtures, bad inputs, and (the full capture in `../shared/data/procam-graycode-chessboard`: a directory
 //! with `capture_0/` and `graycode_pattern/`) the full real capture.
+
+mod shared_data;
 
 use std::path::{Path, PathBuf};
 
@@ -196,15 +198,9 @@ fn size_mismatch_names_the_file() {
     assert_eq!(err, Err(DecodeError::Empty { width: 0, height: 4 }));
 }
 
-/// The full capture, when `SCANRIG_GRAYCODE_DATA` points at it.
+/// The full capture in `../shared/data/procam-graycode-chessboard` (fails under CI when missing).
 fn full_data() -> Option<PathBuf> {
-    match std::env::var_os("SCANRIG_GRAYCODE_DATA") {
-        Some(d) => Some(PathBuf::from(d)),
-        None => {
-            eprintln!("skipped: set SCANRIG_GRAYCODE_DATA to the Gray-code chessboard capture (with capture_0/)");
-            None
-        }
-    }
+    shared_data::dataset("procam-graycode-chessboard")
 }
 
 #[test]

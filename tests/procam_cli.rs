@@ -21,13 +21,31 @@ fn sim() -> SimProcam {
         camera: CameraModel {
             width: 640,
             height: 480,
-            intrinsics: Intrinsics { fx: 800.0, fy: 792.0, cx: 323.5, cy: 236.0, skew: 0.0, k1: -0.12, k2: 0.05 },
+            intrinsics: Intrinsics {
+                fx: 800.0,
+                fy: 792.0,
+                cx: 323.5,
+                cy: 236.0,
+                skew: 0.0,
+                k1: -0.12,
+                k2: 0.05,
+                ..Intrinsics::default()
+            },
             pose: Pose { rotation: Matrix3::identity(), translation: Vector3::zeros() },
         },
         projector: CameraModel {
             width: 320,
             height: 240,
-            intrinsics: Intrinsics { fx: 420.0, fy: 415.0, cx: 166.0, cy: 131.5, skew: 0.0, k1: -0.06, k2: 0.02 },
+            intrinsics: Intrinsics {
+                fx: 420.0,
+                fy: 415.0,
+                cx: 166.0,
+                cy: 131.5,
+                skew: 0.0,
+                k1: -0.06,
+                k2: 0.02,
+                ..Intrinsics::default()
+            },
             pose: Pose::look_at(
                 Vector3::new(0.12, -0.02, 0.0),
                 Vector3::new(0.0, 0.0, 0.6),
@@ -83,7 +101,7 @@ fn calibrate_projector_cli_on_simulated_captures() {
     }
     let out = tmp.path().join("procam.toml");
     args.extend(
-        ["--board", "9x6", "--square", "0.025", "--projector", "320x240", "--out"].iter().map(|s| s.to_string()),
+        ["--board", "9x6", "--square-mm", "25", "--projector", "320x240", "--out"].iter().map(|s| s.to_string()),
     );
     args.push(out.display().to_string());
     let run = Command::new(env!("CARGO_BIN_EXE_scanrig")).args(&args).output().expect("run scanrig");
@@ -117,7 +135,7 @@ fn calibrate_projector_cli_on_simulated_captures() {
     let run = Command::new(env!("CARGO_BIN_EXE_scanrig"))
         .args(["calibrate", "projector", "--captures"])
         .arg(&short)
-        .args(["--board", "9x6", "--square", "0.025", "--projector", "320x240", "--out"])
+        .args(["--board", "9x6", "--square-mm", "25", "--projector", "320x240", "--out"])
         .arg(tmp.path().join("x.toml"))
         .output()
         .expect("run scanrig");

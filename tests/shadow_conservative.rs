@@ -29,7 +29,16 @@ fn camera() -> CameraModel {
     CameraModel {
         width: 320,
         height: 240,
-        intrinsics: Intrinsics { fx: 600.0, fy: 600.0, cx: 160.0, cy: 120.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+        intrinsics: Intrinsics {
+            fx: 600.0,
+            fy: 600.0,
+            cx: 160.0,
+            cy: 120.0,
+            skew: 0.0,
+            k1: 0.0,
+            k2: 0.0,
+            ..Intrinsics::default()
+        },
         pose: Pose::look_at(around(-90.0, 58.0, 0.5), Vector3::new(0.0, 0.0, 0.035), Vector3::z()),
     }
 }

@@ -52,7 +52,16 @@ fn rig(scene: &str, response: ProjectorResponse) -> Rig {
     let proj_model = CameraModel {
         width: PW,
         height: PH,
-        intrinsics: Intrinsics { fx: 600.0, fy: 600.0, cx: 160.0, cy: 120.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+        intrinsics: Intrinsics {
+            fx: 600.0,
+            fy: 600.0,
+            cx: 160.0,
+            cy: 120.0,
+            skew: 0.0,
+            k1: 0.0,
+            k2: 0.0,
+            ..Intrinsics::default()
+        },
         pose: Pose::look_at(v(0.12, -0.4, 0.12), target, Vector3::z()),
     };
     let lighting = Lighting {
@@ -66,7 +75,16 @@ fn rig(scene: &str, response: ProjectorResponse) -> Rig {
     let camera = CameraModel {
         width: 160,
         height: 120,
-        intrinsics: Intrinsics { fx: 380.0, fy: 380.0, cx: 80.0, cy: 60.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+        intrinsics: Intrinsics {
+            fx: 380.0,
+            fy: 380.0,
+            cx: 80.0,
+            cy: 60.0,
+            skew: 0.0,
+            k1: 0.0,
+            k2: 0.0,
+            ..Intrinsics::default()
+        },
         pose: Pose::look_at(v(-0.05, -0.42, 0.1), target, Vector3::z()),
     };
     let projector = SimProjector::with_response(world.clone(), PW, PH, response);

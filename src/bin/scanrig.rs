@@ -27,6 +27,85 @@ enum CalibrateCommand {
     Projector(ProjectorArgs),
 }
 
+/// `scanrig triangulate` options.
+#[derive(clap::Args, Debug)]
+struct TriangulateArgs {
+    /// Directory of the captured Gray-code sequence (sorted by name: pattern/inverse pairs for the
+    /// columns then the rows, MSB first, then all-white and all-black).
+    #[arg(long)]
+    images: PathBuf,
+    /// Projector-camera calibration: a TOML file of `scanrig calibrate projector` or an OpenCV
+    /// FileStorage XML (calibration_result.xml).
+    #[arg(long)]
+    procam: PathBuf,
+    /// Gray-code pattern resolution WIDTHxHEIGHT, pixels (for an XML calibration).
+    #[arg(long, default_value = "1024x768")]
+    projector: String,
+    /// Projector pixels per Gray-code pixel (for an XML calibration).
+    #[arg(long, default_value_t = 1)]
+    graycode_step: u32,
+    /// A pixel is lit when |white - black| exceeds this (grey levels).
+    #[arg(long, default_value_t = 40)]
+    black_threshold: u8,
+    /// Every bit needs |pattern - inverse| of at least this (grey levels).
+    #[arg(long, default_value_t = 5)]
+    white_threshold: u8,
+    /// The chessboard in view, inner corners COLSxROWS, to measure the cloud (needs --square).
+    #[arg(long, requires = "square")]
+    board: Option<String>,
+    /// Square size of --board, in the calibration's length unit.
+    #[arg(long)]
+    square: Option<f64>,
+    /// Output point cloud (binary PLY).
+    #[arg(long)]
+    out: PathBuf,
+}
+
+/// `scanrig laser-view` options.
+#[derive(clap::Args, Debug)]
+struct LaserViewArgs {
+    /// Camera intrinsics: a calibration file with `[camera]` or an OpenCV FileStorage YAML/XML.
+    #[arg(long)]
+    intrinsics: PathBuf,
+    /// The laser plane: a calibration file with `[[lasers]]` (see --laser-index) ...
+    #[arg(long, conflicts_with = "plane")]
+    calibration: Option<PathBuf>,
+    /// Which `[[lasers]]` entry of --calibration.
+    #[arg(long, default_value_t = 0)]
+    laser_index: usize,
+    /// ... or the plane itself, nx,ny,nz,d (camera frame, d in millimetres).
+    #[arg(long, allow_hyphen_values = true)]
+    plane: Option<String>,
+    /// The laser-on frame.
+    #[arg(long)]
+    laser: PathBuf,
+    /// The laser-off frame.
+    #[arg(long)]
+    background: PathBuf,
+    /// A frame under white light to colour the points (default: the laser-off frame).
+    #[arg(long)]
+    texture: Option<PathBuf>,
+    /// Laser colour r,g,b.
+    #[arg(long, default_value = "255,0,0")]
+    laser_colour: String,
+    /// Smallest stripe signal, 8-bit levels.
+    #[arg(long, default_value_t = 40.0)]
+    min_peak: f32,
+    /// Widest accepted run of stripe pixels in a row, pixels.
+    #[arg(long, default_value_t = 8)]
+    max_width_px: u32,
+    /// A plane nx,ny,nz,d (camera frame, d in millimetres; e.g. the turntable top) to check the
+    /// points within --check-band-mm of it against.
+    #[arg(long, allow_hyphen_values = true)]
+    check_plane: Option<String>,
+    /// Half-width of the band around --check-plane, millimetres.
+    #[arg(long, default_value_t = 10.0)]
+    check_band_mm: f64,
+    /// Output point cloud (binary PLY, metres, coloured).
+    #[arg(long)]
+    out: PathBuf,
+}
+
 /// `scanrig calibrate projector` options.
 #[derive(clap::Args, Debug)]
 struct ProjectorArgs {
@@ -36,9 +115,12 @@ struct ProjectorArgs {
     /// Board inner corners COLSxROWS.
     #[arg(long)]
     board: String,
-    /// Square size, in the unit the translation should come out in (metres for the rig).
+    /// Square size, millimetres (the translation is written in metres, as a rig's `procam` needs).
     #[arg(long)]
-    square: f64,
+    square_mm: f64,
+    /// Length of one unit of the --reference file's translation, millimetres.
+    #[arg(long, default_value_t = 1.0)]
+    reference_unit_mm: f64,
     /// Gray-code pattern resolution WIDTHxHEIGHT, pixels.
     #[arg(long, default_value = "1024x768")]
     projector: String,
@@ -162,6 +244,14 @@ enum Command {
         #[command(subcommand)]
         what: CalibrateCommand,
     },
+    /// Triangulate a Gray-code structured-light capture with its projector-camera calibration into a
+    /// coloured point cloud (camera frame, the calibration's length unit); with --board, also measure
+    /// the chessboard in view (plane-fit RMS, neighbouring-corner distances against the square).
+    Triangulate(TriangulateArgs),
+    /// Triangulate one laser view (laser-on and laser-off frames) on a calibrated laser plane into a
+    /// coloured point cloud (camera frame, metres); optionally check the points near a known plane
+    /// (e.g. the turntable top) against it.
+    LaserView(LaserViewArgs),
     /// Check a rig file and report every problem in it.
     Validate {
         /// The rig file (TOML).
@@ -462,6 +552,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Calibrate { what: CalibrateCommand::Rig(what) } => Ok(scanrig::calibration::cli::run(what)?),
         Command::Calibrate { what: CalibrateCommand::Projector(args) } => calibrate_projector(args),
+        Command::Triangulate(args) => triangulate_capture(args),
+        Command::LaserView(args) => laser_view(args),
         Command::Status(d) => {
             let v = d.client()?.get_json("/api/v1/status")?;
             println!("{}", serde_json::to_string_pretty(&v)?);
@@ -686,7 +778,8 @@ fn calibrate_projector(args: ProjectorArgs) -> anyhow::Result<()> {
     let ProjectorArgs {
         captures,
         board,
-        square,
+        square_mm,
+        reference_unit_mm,
         projector,
         graycode_step,
         camera_calib,
@@ -697,8 +790,8 @@ fn calibrate_projector(args: ProjectorArgs) -> anyhow::Result<()> {
         out,
     } = args;
     let (cols, rows) = parse_size(&board, "--board")?;
-    let board =
-        scanrig::calibration::BoardSpec::new(cols as usize, rows as usize, square).context("--board/--square")?;
+    let board = scanrig::calibration::BoardSpec::new(cols as usize, rows as usize, square_mm * 1e-3)
+        .context("--board/--square-mm")?;
     let mut view = scanrig::calibration::procam::ProcamViewOptions::default();
     view.decode.black_threshold = black_threshold;
     view.decode.white_threshold = white_threshold;
@@ -713,6 +806,7 @@ fn calibrate_projector(args: ProjectorArgs) -> anyhow::Result<()> {
         view,
         camera_calib,
         reference,
+        reference_unit_m: reference_unit_mm * 1e-3,
         intrinsics_from_reference,
     };
     let report = run_procam(&req)?;
@@ -749,5 +843,115 @@ fn calibrate_projector(args: ProjectorArgs) -> anyhow::Result<()> {
     }
     write_procam_file(&out, f)?;
     println!("wrote {}", out.display());
+    Ok(())
+}
+
+fn triangulate_capture(args: TriangulateArgs) -> anyhow::Result<()> {
+    use scanrig::calibration::procam_cloud::{run_triangulate, TriangulateRequest};
+    if args.graycode_step == 0 {
+        anyhow::bail!("--graycode-step must be at least 1");
+    }
+    let board = match (&args.board, args.square) {
+        (Some(b), Some(sq)) => {
+            let (cols, rows) = parse_size(b, "--board")?;
+            Some(scanrig::calibration::BoardSpec::new(cols as usize, rows as usize, sq).context("--board/--square")?)
+        }
+        _ => None,
+    };
+    let mut view = scanrig::calibration::procam::ProcamViewOptions::default();
+    view.decode.black_threshold = args.black_threshold;
+    view.decode.white_threshold = args.white_threshold;
+    view.local.graycode_step = args.graycode_step;
+    let req = TriangulateRequest {
+        images: args.images,
+        procam: args.procam,
+        patterns: parse_size(&args.projector, "--projector")?,
+        graycode_step: args.graycode_step,
+        view,
+        board,
+        out: args.out,
+    };
+    let r = run_triangulate(&req).with_context(|| format!("triangulating {}", req.images.display()))?;
+    println!(
+        "{}x{} camera, {:.1}% decoded, {} points ({} outliers removed)",
+        r.camera_size.0,
+        r.camera_size.1,
+        100.0 * r.decoded_fraction,
+        r.points,
+        r.outliers
+    );
+    if let Some(b) = &r.board {
+        println!(
+            "board plane: {} points, RMS {:.3}, max {:.3}; corners: {} triangulated (mean ray gap {:.3}), {} neighbour pairs, spacing mean {:.3} (square {}), RMS error {:.3}, max error {:.2}%",
+            b.plane_points,
+            b.plane_rms,
+            b.plane_max,
+            b.corners,
+            b.corner_ray_gap_mean,
+            b.pairs,
+            b.spacing_mean,
+            req.board.map_or(0.0, |x| x.square_m),
+            b.spacing_rms,
+            100.0 * b.spacing_max_rel_error
+        );
+    }
+    println!("wrote {}", req.out.display());
+    Ok(())
+}
+
+fn laser_view(args: LaserViewArgs) -> anyhow::Result<()> {
+    use scanrig::calibration::cli::{load_intrinsics, parse_colour, parse_plane_mm};
+    use scanrig::calibration::laser_board;
+    let (intrinsics, _) = load_intrinsics(&args.intrinsics)?;
+    let plane = match (&args.plane, &args.calibration) {
+        (Some(p), _) => parse_plane_mm(p)?,
+        (None, Some(c)) => {
+            let file = scanrig::calibration::file::CalibrationFile::load(c)?;
+            let l =
+                file.lasers.iter().find(|l| l.index == args.laser_index).with_context(|| {
+                    format!("{} has no [[lasers]] entry with index {}", c.display(), args.laser_index)
+                })?;
+            scanrig::pipeline::laser::Plane { normal: l.normal_camera, offset_m: l.offset_camera_m }
+        }
+        (None, None) => anyhow::bail!("give --plane or --calibration"),
+    };
+    let stripe = scanrig::pipeline::laser::StripeParams {
+        min_peak: args.min_peak,
+        max_width_px: args.max_width_px,
+        ..Default::default()
+    };
+    let cloud = laser_board::laser_view(
+        &intrinsics,
+        &plane,
+        &args.laser,
+        &args.background,
+        args.texture.as_deref(),
+        parse_colour(&args.laser_colour)?,
+        &stripe,
+    )?;
+    println!("{} stripe peaks, {} points triangulated", cloud.peaks, cloud.points.len());
+    if let Some(c) = &args.check_plane {
+        let check = parse_plane_mm(c)?;
+        let band = args.check_band_mm * 1e-3;
+        let d: Vec<f64> = cloud.points.iter().map(|p| check.distance(p)).filter(|d| d.abs() <= band).collect();
+        if d.is_empty() {
+            println!("check plane: no point within {} mm", args.check_band_mm);
+        } else {
+            let mean = d.iter().sum::<f64>() / d.len() as f64;
+            let rms = (d.iter().map(|v| v * v).sum::<f64>() / d.len() as f64).sqrt();
+            let sd = (d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / d.len() as f64).sqrt();
+            println!(
+                "check plane: {} points within {} mm, residual mean {:.3} mm, RMS {:.3} mm, spread (SD) {:.3} mm",
+                d.len(),
+                args.check_band_mm,
+                1e3 * mean,
+                1e3 * rms,
+                1e3 * sd
+            );
+        }
+    }
+    let pts: Vec<[f32; 3]> = cloud.points.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect();
+    scanrig::pipeline::export::write_ply_points(&args.out, &pts, Some(&cloud.colours))?;
+    println!("wrote {}", args.out.display());
     Ok(())
 }

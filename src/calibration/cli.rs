@@ -26,6 +26,26 @@ use crate::pipeline::light_calibration::{
 use crate::sim::chessboard::ChessboardTarget;
 use crate::sim::{FrameNoise, Lighting, Material, PointLight, Primitive, RayTable, Scene, SimWorld, Solid};
 
+/// File extensions of board images (PNG 8/16-bit, JPEG, PNM, TIFF, BMP), case-insensitive.
+pub const IMAGE_EXTENSIONS: [&str; 10] = ["png", "jpg", "jpeg", "pgm", "ppm", "pnm", "pbm", "tif", "tiff", "bmp"];
+
+/// Read an image of any supported format as 8-bit grey; errors name the file.
+fn read_gray(p: &Path) -> Result<GrayImage, WorkflowError> {
+    crate::dataset::load_gray(p).map_err(|e| match e {
+        crate::dataset::DatasetError::Image { path, source } => {
+            WorkflowError::Image { path, what: "cannot read image", source }
+        }
+        crate::dataset::DatasetError::Read { path, source } => {
+            WorkflowError::Io { path, what: "cannot read image", source }
+        }
+        other => WorkflowError::Io {
+            path: p.to_owned(),
+            what: "cannot read image",
+            source: std::io::Error::other(other.to_string()),
+        },
+    })
+}
+
 /// Board views needed for a camera calibration.
 const MIN_CAMERA_VIEWS: usize = 3;
 
@@ -37,9 +57,12 @@ pub enum CalibrateCommand {
         /// Where the board images come from.
         #[command(flatten)]
         source: BoardSource,
-        /// Do not estimate the distortion (k1 = k2 = 0).
+        /// Do not estimate the distortion (k1 = k2 = p1 = p2 = k3 = 0).
         #[arg(long)]
         no_distortion: bool,
+        /// Distortion terms to estimate: 2 (k1 k2) or 5 (OpenCV's k1 k2 p1 p2 k3).
+        #[arg(long, default_value_t = 2)]
+        distortion_terms: u8,
         /// Hold the principal point at the image centre (for one or two views).
         #[arg(long)]
         fix_principal_point: bool,
@@ -56,6 +79,51 @@ pub enum CalibrateCommand {
         /// Height of the board's origin above the table top, millimetres (its thickness when lying).
         #[arg(long, default_value_t = 0.0)]
         board_height_mm: f64,
+    },
+    /// A laser plane (camera frame) from a chessboard under the laser: laser-on / laser-off frame
+    /// pairs of the board at two or more poses, the camera's intrinsics known.
+    Laser {
+        /// Camera intrinsics: a calibration file with `[camera]` or an OpenCV FileStorage YAML/XML
+        /// (default: `--out`).
+        #[arg(long)]
+        intrinsics: Option<PathBuf>,
+        /// Inner corners COLSxROWS, e.g. 11x6.
+        #[arg(long)]
+        board: String,
+        /// Square size, millimetres.
+        #[arg(long)]
+        square_mm: f64,
+        /// Laser-on frames of the board, one per pose.
+        #[arg(long, num_args = 1.., required = true)]
+        laser: Vec<PathBuf>,
+        /// Laser-off frames, the same poses in the same order.
+        #[arg(long, num_args = 1.., required = true)]
+        background: Vec<PathBuf>,
+        /// Well-lit frames of the same poses to find the board in, `-` for none (default: find it
+        /// in the contrast-stretched laser frames).
+        #[arg(long, num_args = 1..)]
+        pattern: Vec<PathBuf>,
+        /// Laser colour r,g,b (weights of the on-minus-off difference).
+        #[arg(long, default_value = "255,0,0")]
+        laser_colour: String,
+        /// Smallest stripe signal, 8-bit levels.
+        #[arg(long, default_value_t = 40.0)]
+        min_peak: f32,
+        /// Plane-fit inlier distance, millimetres.
+        #[arg(long, default_value_t = 1.0)]
+        inlier_mm: f64,
+        /// Index of the laser in the rig (the `[[lasers]]` entry to write).
+        #[arg(long, default_value_t = 0)]
+        index: usize,
+        /// A published plane nx,ny,nz,d (camera frame, d in millimetres) to compare with.
+        #[arg(long, allow_hyphen_values = true)]
+        reference_plane: Option<String>,
+        /// A reference cloud of stripe points (PLY, camera frame, millimetres) to compare with.
+        #[arg(long)]
+        reference_cloud: Option<PathBuf>,
+        /// The calibration file to create or update.
+        #[arg(long)]
+        out: PathBuf,
     },
     /// Positions of the rig's white lights, from a matte sphere on the turntable (simulated rig).
     Lights {
@@ -171,16 +239,71 @@ pub enum WorkflowError {
     /// The rig cannot do what was asked.
     #[error("{0}")]
     Unsupported(&'static str),
+    /// An output file could not be written.
+    #[error(transparent)]
+    Export(#[from] crate::pipeline::export::ExportError),
 }
 
 /// Run one `calibrate` command, printing progress to stdout.
 pub fn run(command: CalibrateCommand) -> Result<(), WorkflowError> {
     match command {
-        CalibrateCommand::Camera { source, no_distortion, fix_principal_point } => {
-            calibrate_camera_command(&source, !no_distortion, fix_principal_point)
+        CalibrateCommand::Camera { source, no_distortion, distortion_terms, fix_principal_point } => {
+            if !matches!(distortion_terms, 2 | 5) {
+                return Err(WorkflowError::Argument {
+                    arg: "distortion-terms",
+                    message: format!("2 (k1 k2) or 5 (k1 k2 p1 p2 k3), got {distortion_terms}"),
+                });
+            }
+            calibrate_camera_command(&source, !no_distortion, distortion_terms == 5, fix_principal_point)
         }
         CalibrateCommand::Turntable { source, intrinsics, board_height_mm } => {
             calibrate_turntable_command(&source, intrinsics.as_deref(), board_height_mm)
+        }
+        CalibrateCommand::Laser {
+            intrinsics,
+            board,
+            square_mm,
+            laser,
+            background,
+            pattern,
+            laser_colour,
+            min_peak,
+            inlier_mm,
+            index,
+            reference_plane,
+            reference_cloud,
+            out,
+        } => {
+            let board = parse_board(&board, square_mm)?;
+            if laser.len() != background.len() {
+                return Err(WorkflowError::Argument {
+                    arg: "background",
+                    message: format!("{} laser frames but {} backgrounds", laser.len(), background.len()),
+                });
+            }
+            if !pattern.is_empty() && pattern.len() != laser.len() {
+                return Err(WorkflowError::Argument {
+                    arg: "pattern",
+                    message: format!("{} laser frames but {} patterns", laser.len(), pattern.len()),
+                });
+            }
+            let colour = parse_colour(&laser_colour)?;
+            let reference = reference_plane.as_deref().map(parse_plane_mm).transpose()?;
+            let intrinsics = load_intrinsics(intrinsics.as_deref().unwrap_or(&out))?.0;
+            let stripe = crate::pipeline::laser::StripeParams { min_peak, ..Default::default() };
+            calibrate_laser_command(LaserJob {
+                intrinsics,
+                board,
+                patterns: (0..laser.len()).map(|i| pattern.get(i).filter(|p| p.as_os_str() != "-").cloned()).collect(),
+                pairs: laser.into_iter().zip(background).collect(),
+                colour,
+                stripe,
+                inlier_m: inlier_mm * 1e-3,
+                index,
+                reference,
+                reference_cloud,
+                out,
+            })
         }
         CalibrateCommand::Lights { rig, sphere_centre_mm, sphere_radius_mm, views, start_offset_mm, out } => {
             let centre = parse_triple("sphere-centre-mm", &sphere_centre_mm)? * 1e-3;
@@ -199,6 +322,183 @@ fn parse_triple(arg: &'static str, s: &str) -> Result<Vector3<f64>, WorkflowErro
         [x, y, z] if v.iter().all(|a| a.is_finite()) => Ok(Vector3::new(x, y, z)),
         _ => Err(WorkflowError::Argument { arg, message: format!("expected three numbers x,y,z, got `{s}`") }),
     }
+}
+
+/// Parse a colour `r,g,b` (0..255 each).
+pub fn parse_colour(s: &str) -> Result<[u8; 3], WorkflowError> {
+    let bad =
+        || WorkflowError::Argument { arg: "laser-colour", message: format!("expected r,g,b (0..255), got `{s}`") };
+    let v: Vec<u8> = s.split(',').map(|t| t.trim().parse::<u8>()).collect::<Result<_, _>>().map_err(|_| bad())?;
+    match v[..] {
+        [r, g, b] => Ok([r, g, b]),
+        _ => Err(bad()),
+    }
+}
+
+/// Parse a plane `nx,ny,nz,d` with `d` in millimetres into a plane in metres (normal normalised).
+pub fn parse_plane_mm(s: &str) -> Result<crate::pipeline::laser::Plane, WorkflowError> {
+    let bad = || WorkflowError::Argument { arg: "plane", message: format!("expected nx,ny,nz,d_mm, got `{s}`") };
+    let v: Vec<f64> = s.split(',').map(|t| t.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|_| bad())?;
+    match v[..] {
+        [x, y, z, d] if v.iter().all(|a| a.is_finite()) => {
+            let n = Vector3::new(x, y, z);
+            let len = n.norm();
+            if len == 0.0 {
+                return Err(bad());
+            }
+            Ok(crate::pipeline::laser::Plane { normal: (n / len).into(), offset_m: d * 1e-3 / len })
+        }
+        _ => Err(bad()),
+    }
+}
+
+/// Camera intrinsics and, when the file says, the image size: from a calibration file's `[camera]`
+/// or from an OpenCV FileStorage YAML/XML file (told apart by content).
+pub fn load_intrinsics(path: &Path) -> Result<(Intrinsics, Option<(u32, u32)>), WorkflowError> {
+    let text = std::fs::read_to_string(path).map_err(|source| WorkflowError::Io {
+        path: path.to_owned(),
+        what: "cannot read the intrinsics file",
+        source,
+    })?;
+    let head = text.trim_start();
+    if head.starts_with("%YAML") || head.starts_with('<') {
+        let c = super::opencv_yaml::parse_camera(&text, path).map_err(|e| WorkflowError::Io {
+            path: path.to_owned(),
+            what: "not a usable OpenCV camera file",
+            source: std::io::Error::other(e.to_string()),
+        })?;
+        return Ok((c.intrinsics, c.size));
+    }
+    let file = CalibrationFile::parse(&text, path)?;
+    let cam = file.camera.ok_or(WorkflowError::Argument {
+        arg: "intrinsics",
+        message: format!("{} has no [camera] section; run `scanrig calibrate camera` first", path.display()),
+    })?;
+    Ok((cam.intrinsics(), Some((cam.width_px, cam.height_px))))
+}
+
+/// Inputs of `calibrate laser`.
+struct LaserJob {
+    intrinsics: Intrinsics,
+    board: BoardSpec,
+    pairs: Vec<(PathBuf, PathBuf)>,
+    patterns: Vec<Option<PathBuf>>,
+    colour: [u8; 3],
+    stripe: crate::pipeline::laser::StripeParams,
+    inlier_m: f64,
+    index: usize,
+    reference: Option<crate::pipeline::laser::Plane>,
+    reference_cloud: Option<PathBuf>,
+    out: PathBuf,
+}
+
+fn laser_error(e: super::laser_board::LaserBoardError) -> WorkflowError {
+    WorkflowError::Io { path: PathBuf::new(), what: "laser calibration", source: std::io::Error::other(chain(&e)) }
+}
+
+/// The error and its sources, `: `-joined.
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut s = e.to_string();
+    let mut cur = e.source();
+    while let Some(c) = cur {
+        s.push_str(": ");
+        s.push_str(&c.to_string());
+        cur = c.source();
+    }
+    s
+}
+
+fn calibrate_laser_command(job: LaserJob) -> Result<(), WorkflowError> {
+    use super::laser_board::{board_laser_view, fit_laser_plane, read_ply_xyz};
+    let mut views = Vec::new();
+    for ((on, off), pattern) in job.pairs.iter().zip(&job.patterns) {
+        let v = board_laser_view(&job.intrinsics, &job.board, on, off, pattern.as_deref(), job.colour, &job.stripe)
+            .map_err(laser_error)?;
+        println!(
+            "{}: board found in {}, posed (RMS {:.3} px) at {:.1} mm, {} stripe peaks, {} on the board",
+            on.display(),
+            v.board_frame.display(),
+            v.pose_rms_px,
+            1e3 * v.pose.translation.norm(),
+            v.peaks,
+            v.points.len()
+        );
+        if let Some(r) = &job.reference {
+            let near: Vec<f64> =
+                v.points.iter().map(|x| r.distance(x)).filter(|d| d.abs() <= 5.0 * job.inlier_m).collect();
+            let rms = (near.iter().map(|d| d * d).sum::<f64>() / near.len().max(1) as f64).sqrt();
+            let mean = near.iter().sum::<f64>() / near.len().max(1) as f64;
+            println!(
+                "  {} of its board points within {:.1} mm of the published plane: mean {:.3} mm, RMS {:.3} mm",
+                near.len(),
+                5e3 * job.inlier_m,
+                1e3 * mean,
+                1e3 * rms
+            );
+        }
+        views.push(v);
+    }
+    if views.iter().filter(|v| !v.points.is_empty()).count() < 2 {
+        return Err(WorkflowError::Argument {
+            arg: "laser",
+            message: "the stripe points of one board pose lie on a line; a laser plane needs two or more board poses"
+                .into(),
+        });
+    }
+    let fit = fit_laser_plane(&views, job.inlier_m).map_err(laser_error)?;
+    let p = fit.plane;
+    println!(
+        "laser plane (camera frame): n = ({:.5}, {:.5}, {:.5}), d = {:.3} mm; RMS {:.3} mm over {} of {} points",
+        p.normal[0],
+        p.normal[1],
+        p.normal[2],
+        1e3 * p.offset_m,
+        1e3 * fit.rms_m,
+        fit.inliers,
+        fit.points
+    );
+    let pts: Vec<Vector3<f64>> = views.iter().flat_map(|v| v.points.iter().copied()).collect();
+    let centroid = pts.iter().sum::<Vector3<f64>>() / pts.len().max(1) as f64;
+    if let Some(r) = &job.reference {
+        println!(
+            "vs published plane: {:.3} deg between the normals, {:.3} mm apart at the stripe points' centroid",
+            p.angle_deg(r),
+            1e3 * r.offset_at(&p, &centroid).unwrap_or(f64::NAN)
+        );
+    }
+    if let Some(path) = &job.reference_cloud {
+        let cloud: Vec<Vector3<f64>> = read_ply_xyz(path).map_err(laser_error)?.into_iter().map(|x| x * 1e-3).collect();
+        let stats = |pl: &crate::pipeline::laser::Plane| {
+            let d: Vec<f64> = cloud.iter().map(|x| pl.distance(x)).collect();
+            let mean = d.iter().sum::<f64>() / d.len().max(1) as f64;
+            let rms = (d.iter().map(|v| v * v).sum::<f64>() / d.len().max(1) as f64).sqrt();
+            (mean, rms)
+        };
+        let (mean, rms) = stats(&p);
+        println!(
+            "vs reference cloud ({} points): distance to our plane mean {:.3} mm, RMS {:.3} mm",
+            cloud.len(),
+            1e3 * mean,
+            1e3 * rms
+        );
+        if let Some(r) = &job.reference {
+            let (m2, r2) = stats(r);
+            println!("  (to the published plane: mean {:.3} mm, RMS {:.3} mm)", 1e3 * m2, 1e3 * r2);
+        }
+    }
+    let mut file = CalibrationFile::load_or_default(&job.out)?;
+    file.lasers.retain(|l| l.index != job.index);
+    file.lasers.push(super::file::LaserSection {
+        index: job.index,
+        normal_camera: p.normal,
+        offset_camera_m: p.offset_m,
+        rms_m: fit.rms_m,
+        points: fit.inliers,
+    });
+    file.lasers.sort_by_key(|l| l.index);
+    file.save(&job.out)?;
+    println!("wrote {}", job.out.display());
+    Ok(())
 }
 
 /// Parse `--board COLSxROWS` and `--square-mm`.
@@ -232,18 +532,17 @@ fn load_images(dir: &Path) -> Result<(Vec<BoardImage>, (u32, u32)), WorkflowErro
     let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|e| io("cannot list the image directory", e))?
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x.eq_ignore_ascii_case("png")))
+        .filter(|p| {
+            p.extension()
+                .and_then(|x| x.to_str())
+                .is_some_and(|x| IMAGE_EXTENSIONS.iter().any(|e| x.eq_ignore_ascii_case(e)))
+        })
         .collect();
     paths.sort();
     let mut out = Vec::with_capacity(paths.len());
     let mut size = None;
     for p in paths {
-        let img = image::open(&p).map_err(|source| WorkflowError::Image {
-            path: p.clone(),
-            what: "cannot read image",
-            source,
-        })?;
-        let gray = img.to_luma8();
+        let gray = read_gray(&p)?;
         let dims = gray.dimensions();
         if *size.get_or_insert(dims) != dims {
             return Err(WorkflowError::Argument {
@@ -319,7 +618,12 @@ fn report_rejection(name: &str, e: &DetectError) {
     println!("{name}: rejected: {e}");
 }
 
-fn calibrate_camera_command(source: &BoardSource, distortion: bool, fix_pp: bool) -> Result<(), WorkflowError> {
+fn calibrate_camera_command(
+    source: &BoardSource,
+    distortion: bool,
+    full_distortion: bool,
+    fix_pp: bool,
+) -> Result<(), WorkflowError> {
     let board = parse_board(&source.board, source.square_mm)?;
     let (images, (width, height)) = match (&source.images, &source.rig) {
         (Some(dir), _) => load_images(dir)?,
@@ -356,6 +660,7 @@ fn calibrate_camera_command(source: &BoardSource, distortion: bool, fix_pp: bool
     let options = CalibrationOptions {
         fixed_principal_point: fix_pp.then_some((width as f64 / 2.0, height as f64 / 2.0)),
         estimate_distortion: distortion,
+        full_distortion,
         ..CalibrationOptions::default()
     };
     let planar: Vec<PlanarView> = views.iter().map(|(_, v)| v.clone()).collect();
@@ -365,13 +670,16 @@ fn calibrate_camera_command(source: &BoardSource, distortion: bool, fix_pp: bool
     }
     let i = cal.intrinsics;
     println!(
-        "camera: fx {:.2} fy {:.2} cx {:.2} cy {:.2} px, k1 {:.5} k2 {:.5}; RMS {:.3} px over {} of {} images",
+        "camera: fx {:.2} fy {:.2} cx {:.2} cy {:.2} px, k1 {:.5} k2 {:.5} p1 {:.3e} p2 {:.3e} k3 {:.5}; RMS {:.3} px over {} of {} images",
         i.fx,
         i.fy,
         i.cx,
         i.cy,
         i.k1,
         i.k2,
+        i.p1,
+        i.p2,
+        i.k3,
         cal.rms_px,
         views.len(),
         images.len()
@@ -386,11 +694,18 @@ fn calibrate_camera_command(source: &BoardSource, distortion: bool, fix_pp: bool
         cy_px: i.cy,
         k1: i.k1,
         k2: i.k2,
+        p1: i.p1,
+        p2: i.p2,
+        k3: i.k3,
         rms_px: cal.rms_px,
         views: views.len(),
     });
     file.save(&source.out)?;
     println!("wrote {}", source.out.display());
+    let yaml = source.out.with_extension("yaml");
+    let text = super::opencv_yaml::camera_yaml(&i, width, height, cal.rms_px);
+    crate::atomic::write_atomic(&yaml, text.as_bytes()).map_err(crate::pipeline::export::ExportError::from)?;
+    println!("wrote {} (OpenCV FileStorage)", yaml.display());
     Ok(())
 }
 

@@ -4,7 +4,7 @@
 //! ```toml
 //! format_version = 1
 //!
-//! [camera]            # intrinsics, pixels; k1, k2 radial distortion of normalised coordinates
+//! [camera]            # intrinsics, pixels; k1 k2 p1 p2 k3 Brown-Conrady distortion (OpenCV's)
 //! width_px = 640
 //! height_px = 480
 //! fx_px = 700.1
@@ -13,6 +13,7 @@
 //! cy_px = 243.1
 //! k1 = -0.08
 //! k2 = 0.02
+//! p1 = 0.0           # optional, 0 when absent (as p2, k3)
 //! rms_px = 0.09        # re-projection RMS of the calibration
 //! views = 12           # board views used
 //!
@@ -57,11 +58,20 @@ pub struct CalibrationFile {
     /// `[[lights]]`: calibrated white-light positions.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub lights: Vec<LightSection>,
+    /// `[[lasers]]`: calibrated laser planes, camera frame.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub lasers: Vec<LaserSection>,
 }
 
 impl Default for CalibrationFile {
     fn default() -> Self {
-        CalibrationFile { format_version: FORMAT_VERSION, camera: None, turntable: None, lights: Vec::new() }
+        CalibrationFile {
+            format_version: FORMAT_VERSION,
+            camera: None,
+            turntable: None,
+            lights: Vec::new(),
+            lasers: Vec::new(),
+        }
     }
 }
 
@@ -85,6 +95,15 @@ pub struct CameraSection {
     pub k1: f64,
     /// Second radial distortion coefficient (dimensionless).
     pub k2: f64,
+    /// First tangential distortion coefficient (OpenCV's p1; 0 when absent).
+    #[serde(default)]
+    pub p1: f64,
+    /// Second tangential distortion coefficient (OpenCV's p2; 0 when absent).
+    #[serde(default)]
+    pub p2: f64,
+    /// Radial distortion coefficient of r⁶ (OpenCV's k3; 0 when absent).
+    #[serde(default)]
+    pub k3: f64,
     /// Re-projection RMS of the calibration, pixels.
     pub rms_px: f64,
     /// Board views used.
@@ -102,6 +121,9 @@ impl CameraSection {
             skew: 0.0,
             k1: self.k1,
             k2: self.k2,
+            p1: self.p1,
+            p2: self.p2,
+            k3: self.k3,
         }
     }
 }
@@ -148,6 +170,23 @@ pub struct LightSection {
     pub rms_levels: f64,
     /// Sphere pixels used.
     pub pixels: usize,
+}
+
+/// `[[lasers]]`: one calibrated laser plane `normal_camera · X = offset_camera_m` in the camera frame
+/// (OpenCV axes, metres), from `scanrig calibrate laser`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LaserSection {
+    /// Index of the laser (the rig file's order).
+    pub index: usize,
+    /// Unit normal of the plane, camera frame.
+    pub normal_camera: [f64; 3],
+    /// Signed distance of the plane from the camera centre along the normal, metres.
+    pub offset_camera_m: f64,
+    /// RMS distance of the stripe points from the plane, metres.
+    pub rms_m: f64,
+    /// Stripe points fitted (inliers).
+    pub points: usize,
 }
 
 /// Why a calibration file could not be read or written.
@@ -394,6 +433,9 @@ mod tests {
                 cy_px: 240.5,
                 k1: -0.08,
                 k2: 0.02,
+                p1: 1e-4,
+                p2: -2e-4,
+                k3: 0.01,
                 rms_px: 0.09,
                 views: 12,
             }),
@@ -407,6 +449,13 @@ mod tests {
                 views: 10,
             }),
             lights: vec![LightSection { index: 1, position_m: [0.1, -0.4, 0.2], rms_levels: 1.0, pixels: 400 }],
+            lasers: vec![LaserSection {
+                index: 0,
+                normal_camera: [0.8, 0.0, 0.6],
+                offset_camera_m: 0.16,
+                rms_m: 2e-4,
+                points: 900,
+            }],
         }
     }
 

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::procam::Lens;
+use crate::geometry::Intrinsics;
 
 /// Why a FileStorage file could not be read.
 #[derive(Debug, thiserror::Error)]
@@ -118,9 +118,9 @@ pub fn read_matrix(text: &str, path: &Path, name: &str) -> Result<OpenCvMatrix, 
 #[derive(Debug, Clone, PartialEq)]
 pub struct ReferenceCalibration {
     /// Camera intrinsics (principal point shifted to this project's pixel-centre convention).
-    pub camera: Lens,
+    pub camera: Intrinsics,
     /// Projector intrinsics (likewise).
-    pub projector: Lens,
+    pub projector: Intrinsics,
     /// Rotation projector <- camera.
     pub rotation: Matrix3<f64>,
     /// Translation projector <- camera, in the unit of the board used (the set's square size).
@@ -139,7 +139,7 @@ impl ReferenceCalibration {
 
     /// Parse the text of a `calibration_result.xml` file (`path` names it in errors).
     pub fn parse(text: &str, path: &Path) -> Result<ReferenceCalibration, OpenCvXmlError> {
-        let lens = |k_name: &str, d_name: &str| -> Result<Lens, OpenCvXmlError> {
+        let lens = |k_name: &str, d_name: &str| -> Result<Intrinsics, OpenCvXmlError> {
             let k = read_matrix(text, path, k_name)?;
             if (k.rows, k.cols) != (3, 3) {
                 return Err(OpenCvXmlError::Malformed {
@@ -159,7 +159,7 @@ impl ReferenceCalibration {
                 });
             }
             let k3 = d.data.get(4).copied().unwrap_or(0.0);
-            let lens = Lens {
+            let lens = Intrinsics {
                 fx: k.data[0],
                 fy: k.data[4],
                 cx: k.data[2] + 0.5,

@@ -20,113 +20,17 @@
 //!   stand for the projector point `(c + 0.5, r + 0.5)`.
 //! - Board frame and board poses as in [`crate::calibration`]; lengths are in the unit of the board's
 //!   square size (metres for the rig; any unit works, translations come out in it).
-//! - [`Lens`] is the five-term Brown-Conrady model (`k1 k2 p1 p2 k3`, OpenCV's order) that published
-//!   projector-camera calibrations use; a [`crate::geometry::Intrinsics`] is the special case
-//!   `p1 = p2 = k3 = 0`.
+//! - Both devices' lenses are [`crate::geometry::Intrinsics`], the project's one lens model: the
+//!   five-term Brown-Conrady model (`k1 k2 p1 p2 k3`, OpenCV's order) that published
+//!   projector-camera calibrations use.
 
 use nalgebra::{DVector, Matrix3, Point2, Vector3};
-use serde::{Deserialize, Serialize};
 
 use super::lm;
 use super::zhang::{nearest_rotation, pose_from_params as pose_from, rotation_vector as rvec};
 use super::{calibrate_camera, estimate_pose, homography, CalibrationError, CalibrationOptions, PlanarView};
 use crate::geometry::{Intrinsics, Pose};
 use crate::pipeline::structured_light::{ProjectorMap, INVALID};
-
-/// Pinhole intrinsics with five-term Brown-Conrady distortion on normalised coordinates:
-/// `x_d = x(1 + k1 r² + k2 r⁴ + k3 r⁶) + 2 p1 x y + p2 (r² + 2x²)`,
-/// `y_d = y(1 + k1 r² + k2 r⁴ + k3 r⁶) + p1 (r² + 2y²) + 2 p2 x y`, then
-/// `u = fx x_d + skew y_d + cx`, `v = fy y_d + cy` in pixels (top-left origin, pixel centres at `+0.5`).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Lens {
-    /// Focal length along x, pixels.
-    pub fx: f64,
-    /// Focal length along y, pixels.
-    pub fy: f64,
-    /// Principal point x, pixels.
-    pub cx: f64,
-    /// Principal point y, pixels.
-    pub cy: f64,
-    /// Skew, pixels.
-    #[serde(default)]
-    pub skew: f64,
-    /// Radial coefficient of r² (dimensionless).
-    #[serde(default)]
-    pub k1: f64,
-    /// Radial coefficient of r⁴.
-    #[serde(default)]
-    pub k2: f64,
-    /// Tangential coefficient p1.
-    #[serde(default)]
-    pub p1: f64,
-    /// Tangential coefficient p2.
-    #[serde(default)]
-    pub p2: f64,
-    /// Radial coefficient of r⁶.
-    #[serde(default)]
-    pub k3: f64,
-}
-
-impl From<Intrinsics> for Lens {
-    fn from(i: Intrinsics) -> Lens {
-        Lens { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy, skew: i.skew, k1: i.k1, k2: i.k2, p1: 0.0, p2: 0.0, k3: 0.0 }
-    }
-}
-
-impl Lens {
-    /// Apply the distortion to normalised coordinates.
-    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
-        (
-            x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x),
-            y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y,
-        )
-    }
-
-    /// Invert [`Lens::distort`] by fixed-point iteration (as OpenCV does; converges for real lenses
-    /// within their field of view).
-    pub fn undistort(&self, xd: f64, yd: f64) -> (f64, f64) {
-        let (mut x, mut y) = (xd, yd);
-        for _ in 0..30 {
-            let r2 = x * x + y * y;
-            let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
-            let dx = 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
-            let dy = self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
-            x = (xd - dx) / radial;
-            y = (yd - dy) / radial;
-        }
-        (x, y)
-    }
-
-    /// Normalised (undistorted) coordinates to pixels.
-    pub fn normalised_to_pixel(&self, x: f64, y: f64) -> Point2<f64> {
-        let (xd, yd) = self.distort(x, y);
-        Point2::new(self.fx * xd + self.skew * yd + self.cx, self.fy * yd + self.cy)
-    }
-
-    /// Pixels to undistorted normalised coordinates.
-    pub fn pixel_to_normalised(&self, u: f64, v: f64) -> (f64, f64) {
-        let yd = (v - self.cy) / self.fy;
-        let xd = (u - self.cx - self.skew * yd) / self.fx;
-        self.undistort(xd, yd)
-    }
-
-    /// The same lens without distortion, as project intrinsics.
-    pub fn pinhole(&self) -> Intrinsics {
-        Intrinsics { fx: self.fx, fy: self.fy, cx: self.cx, cy: self.cy, skew: self.skew, k1: 0.0, k2: 0.0 }
-    }
-
-    /// True when every coefficient is finite and the focal lengths positive.
-    pub fn is_valid(&self) -> bool {
-        [self.fx, self.fy, self.cx, self.cy, self.skew, self.k1, self.k2, self.p1, self.p2, self.k3]
-            .iter()
-            .all(|v| v.is_finite())
-            && self.fx > 0.0
-            && self.fy > 0.0
-    }
-}
 
 /// Tunables of [`projector_corners`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -297,9 +201,9 @@ impl ProcamView {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ProcamOptions {
     /// Camera intrinsics to hold fixed; `None` calibrates them from the views (Zhang, at least 3).
-    pub camera: Option<Lens>,
+    pub camera: Option<Intrinsics>,
     /// Projector intrinsics to hold fixed; `None` calibrates them from the views' projector corners.
-    pub projector: Option<Lens>,
+    pub projector: Option<Intrinsics>,
     /// Options of the per-device Zhang calibrations.
     pub zhang: CalibrationOptions,
     /// Hold projector <- camera at this transform (only the board poses are refined), to measure
@@ -325,9 +229,9 @@ impl Default for ProcamOptions {
 #[derive(Debug, Clone, PartialEq)]
 pub struct ProcamCalibration {
     /// Camera intrinsics, pixels.
-    pub camera: Lens,
+    pub camera: Intrinsics,
     /// Projector intrinsics, projector pixels.
-    pub projector: Lens,
+    pub projector: Intrinsics,
     /// Projector <- camera: `x_proj = rotation · x_cam + translation`.
     pub rotation: Matrix3<f64>,
     /// Translation projector <- camera, in the unit of the board's square size.
@@ -361,7 +265,7 @@ pub fn rotation_difference_deg(a: &Matrix3<f64>, b: &Matrix3<f64>) -> f64 {
 }
 
 /// Residuals (projected - observed, pixels) of `view` through `lens` at `pose`, appended to `out`.
-fn push_residuals(lens: &Lens, pose: &Pose, view: &PlanarView, out: &mut Vec<f64>) {
+fn push_residuals(lens: &Intrinsics, pose: &Pose, view: &PlanarView, out: &mut Vec<f64>) {
     for (p, q) in view.object.iter().zip(&view.image) {
         let c = pose.apply(p);
         if c.z > 1e-12 {
@@ -385,7 +289,7 @@ fn rms(res: &[f64]) -> f64 {
 /// The board -> device pose of one view through a lens with five-term distortion: the observed
 /// pixels are undistorted to ideal pixels, posed by [`estimate_pose`] with the distortion-free
 /// intrinsics, then refined on the distorted re-projection error.
-pub fn estimate_pose_lens(lens: &Lens, view: &PlanarView) -> Result<Pose, CalibrationError> {
+pub fn estimate_pose_lens(lens: &Intrinsics, view: &PlanarView) -> Result<Pose, CalibrationError> {
     let k = lens.pinhole();
     let ideal: Vec<Point2<f64>> = view
         .image
@@ -435,7 +339,7 @@ pub fn calibrate_procam(views: &[ProcamView], opts: &ProcamOptions) -> Result<Pr
     }
     let cam_views: Vec<PlanarView> = views.iter().map(|v| v.camera.clone()).collect();
     let proj_views: Vec<PlanarView> = views.iter().map(|v| v.projector.clone()).collect();
-    let device = |given: Option<Lens>, vs: &[PlanarView]| -> Result<(Lens, Vec<Pose>), CalibrationError> {
+    let device = |given: Option<Intrinsics>, vs: &[PlanarView]| -> Result<(Intrinsics, Vec<Pose>), CalibrationError> {
         match given {
             Some(lens) => {
                 if !lens.is_valid() {
@@ -450,7 +354,7 @@ pub fn calibrate_procam(views: &[ProcamView], opts: &ProcamOptions) -> Result<Pr
             }
             None => {
                 let cal = calibrate_camera(vs, &opts.zhang)?;
-                Ok((Lens::from(cal.intrinsics), cal.poses))
+                Ok((cal.intrinsics, cal.poses))
             }
         }
     };

@@ -2,7 +2,7 @@
 //! pose) -> projector-camera calibration -> a TOML calibration file, with an optional comparison
 //! against a published OpenCV calibration.
 //!
-//! The file ([`ProcamFile`]) holds both devices' [`Lens`] (pixels), the projector's size, the
+//! The file ([`ProcamFile`]) holds both devices' [`Intrinsics`] (pixels), the projector's size, the
 //! Gray-code step, and projector <- camera `rotation` (row-major 3x3) and `translation` in the unit
 //! of the board's square size.
 
@@ -12,10 +12,11 @@ use serde::{Deserialize, Serialize};
 
 use super::opencv_xml::{OpenCvXmlError, ReferenceCalibration};
 use super::procam::{
-    calibrate_procam, procam_view_from_frames, rotation_difference_deg, Lens, ProcamOptions, ProcamView,
-    ProcamViewError, ProcamViewOptions, ProcamViewStats,
+    calibrate_procam, procam_view_from_frames, rotation_difference_deg, ProcamOptions, ProcamView, ProcamViewError,
+    ProcamViewOptions, ProcamViewStats,
 };
 use super::{BoardSpec, CalibrationError};
+use crate::geometry::Intrinsics;
 use crate::geometry::Pose;
 use crate::atomic::{write_atomic, AtomicWriteError};
 use crate::pipeline::structured_light::{load_capture_dir, CaptureError, GrayCodePatterns, PatternError};
@@ -25,9 +26,9 @@ use crate::pipeline::structured_light::{load_capture_dir, CaptureError, GrayCode
 #[serde(deny_unknown_fields)]
 pub struct ProcamFile {
     /// Camera intrinsics, camera pixels.
-    pub camera: Lens,
+    pub camera: Intrinsics,
     /// Projector intrinsics, projector pixels.
-    pub projector: Lens,
+    pub projector: Intrinsics,
     /// Projector width, pixels.
     pub projector_width: u32,
     /// Projector height, pixels.
@@ -90,6 +91,9 @@ pub enum ProcamFileError {
     /// The output could not be written.
     #[error(transparent)]
     Write(#[from] AtomicWriteError),
+    /// A point cloud or mesh could not be written.
+    #[error("cannot write the point cloud")]
+    Export(#[from] crate::pipeline::export::ExportError),
 }
 
 /// What `scanrig calibrate projector` does.
@@ -103,11 +107,14 @@ pub struct ProcamRequest {
     pub patterns: (u32, u32),
     /// Capture options (decoder thresholds, detector, local homographies incl. the Gray-code step).
     pub view: ProcamViewOptions,
-    /// A TOML file with a `[camera]` table of [`Lens`] fields (e.g. a file this workflow wrote) to
+    /// A TOML file with a `[camera]` table of [`Intrinsics`] fields (e.g. a file this workflow wrote) to
     /// hold the camera intrinsics fixed.
     pub camera_calib: Option<PathBuf>,
     /// A published OpenCV `calibration_result.xml` to compare with.
     pub reference: Option<PathBuf>,
+    /// Length of one unit of the reference's translation in the board's unit (metres when the square
+    /// size is in metres; 1 when both use the same unit).
+    pub reference_unit_m: f64,
     /// Hold both devices' intrinsics at the reference's (one pose then suffices).
     pub intrinsics_from_reference: bool,
 }
@@ -136,10 +143,10 @@ pub struct ProcamReport {
     pub reference: Option<ReferenceComparison>,
 }
 
-fn read_camera_file(path: &Path) -> Result<Lens, ProcamFileError> {
+fn read_camera_file(path: &Path) -> Result<Intrinsics, ProcamFileError> {
     #[derive(Deserialize)]
     struct CameraOnly {
-        camera: Lens,
+        camera: Intrinsics,
     }
     let bad = |reason: String| ProcamFileError::ReadFile { path: path.to_path_buf(), reason };
     let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
@@ -154,7 +161,12 @@ fn read_camera_file(path: &Path) -> Result<Lens, ProcamFileError> {
 /// Load, decode and calibrate; write nothing.
 pub fn run_procam(req: &ProcamRequest) -> Result<ProcamReport, ProcamFileError> {
     let patterns = GrayCodePatterns::new(req.patterns.0, req.patterns.1)?;
-    let reference = req.reference.as_deref().map(ReferenceCalibration::load).transpose()?;
+    let reference = req
+        .reference
+        .as_deref()
+        .map(ReferenceCalibration::load)
+        .transpose()?
+        .map(|r| ReferenceCalibration { translation: r.translation * req.reference_unit_m, ..r });
     let mut views: Vec<ProcamView> = Vec::new();
     let mut stats = Vec::new();
     for dir in &req.captures {
@@ -240,7 +252,7 @@ mod tests {
     #[test]
     fn camera_file_round_trips_and_errors_name_the_file() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let lens = Lens {
+        let lens = Intrinsics {
             fx: 800.0,
             fy: 790.0,
             cx: 320.5,
@@ -254,7 +266,7 @@ mod tests {
         };
         let file = ProcamFile {
             camera: lens,
-            projector: Lens { fx: 400.0, ..lens },
+            projector: Intrinsics { fx: 400.0, ..lens },
             projector_width: 320,
             projector_height: 240,
             graycode_step: 1,

@@ -11,7 +11,7 @@ use crate::geometry::{CameraModel, Intrinsics, Pose};
 use crate::pipeline::structured_light::GrayCodePatterns;
 
 fn projector_truth() -> Intrinsics {
-    Intrinsics { fx: 420.0, fy: 415.0, cx: 166.0, cy: 131.5, skew: 0.0, k1: -0.06, k2: 0.02 }
+    Intrinsics { fx: 420.0, fy: 415.0, cx: 166.0, cy: 131.5, skew: 0.0, k1: -0.06, k2: 0.02, ..Intrinsics::default() }
 }
 
 /// The projector 12 cm to the camera's right and 2 cm above it, aimed at the boards' middle.
@@ -159,8 +159,8 @@ fn single_pose_extrinsics_with_known_intrinsics() {
     let pose = calibration_poses(&target())[4];
     let (v, _) = view(&sim, &pose, 4);
     let opts = ProcamOptions {
-        camera: Some(Lens::from(camera().intrinsics)),
-        projector: Some(Lens::from(projector_truth())),
+        camera: Some(camera().intrinsics),
+        projector: Some(projector_truth()),
         ..ProcamOptions::default()
     };
     let cal = calibrate_procam(std::slice::from_ref(&v), &opts).expect("calibrates");
@@ -176,15 +176,25 @@ fn single_pose_extrinsics_with_known_intrinsics() {
 
 #[test]
 fn lens_distortion_round_trips_and_matches_intrinsics() {
-    let l =
-        Lens { fx: 900.0, fy: 880.0, cx: 320.0, cy: 250.0, skew: 0.0, k1: -0.2, k2: 0.1, p1: 1e-3, p2: -2e-3, k3: 0.3 };
+    let l = Intrinsics {
+        fx: 900.0,
+        fy: 880.0,
+        cx: 320.0,
+        cy: 250.0,
+        skew: 0.0,
+        k1: -0.2,
+        k2: 0.1,
+        p1: 1e-3,
+        p2: -2e-3,
+        k3: 0.3,
+    };
     for (x, y) in [(0.1, -0.2), (-0.3, 0.25), (0.0, 0.0)] {
         let q = l.normalised_to_pixel(x, y);
         let (bx, by) = l.pixel_to_normalised(q.x, q.y);
         assert!((bx - x).abs() < 1e-9 && (by - y).abs() < 1e-9, "{bx} {by}");
     }
     let i = projector_truth();
-    let a = Lens::from(i).normalised_to_pixel(0.2, -0.1);
+    let a = i.normalised_to_pixel(0.2, -0.1);
     let b = i.normalised_to_pixel(0.2, -0.1);
     assert!((a - b).norm() < 1e-12);
 }
@@ -192,7 +202,7 @@ fn lens_distortion_round_trips_and_matches_intrinsics() {
 #[test]
 fn bad_views_are_refused_naming_the_view() {
     let board = board();
-    let lens = Lens::from(camera().intrinsics);
+    let lens = camera().intrinsics;
     let obj = board.object_points();
     let pose = calibration_poses(&target())[0];
     let cam: Vec<Point2<f64>> = obj
@@ -220,6 +230,6 @@ fn bad_views_are_refused_naming_the_view() {
     let e = calibrate_procam(&[], &opts).expect_err("refused");
     assert!(matches!(e, super::CalibrationError::TooFewViews { got: 0, need: 1 }), "{e}");
     // Non-finite given intrinsics.
-    let bad = ProcamOptions { camera: Some(Lens { fx: f64::NAN, ..lens }), ..opts };
+    let bad = ProcamOptions { camera: Some(Intrinsics { fx: f64::NAN, ..lens }), ..opts };
     assert!(calibrate_procam(std::slice::from_ref(&good), &bad).is_err());
 }

@@ -8,7 +8,7 @@ use crate::sim::chessboard::{render_board, BoardMount, BoardScene, ChessboardTar
 use crate::sim::FrameNoise;
 
 pub(crate) fn truth_intrinsics() -> Intrinsics {
-    Intrinsics { fx: 800.0, fy: 792.0, cx: 323.5, cy: 236.0, skew: 0.0, k1: -0.12, k2: 0.05 }
+    Intrinsics { fx: 800.0, fy: 792.0, cx: 323.5, cy: 236.0, skew: 0.0, k1: -0.12, k2: 0.05, ..Intrinsics::default() }
 }
 
 /// The camera at the rig origin looking down +z (rig frame = camera frame), so board poses are
@@ -195,7 +195,16 @@ fn turntable_rig() -> capture::SimBoardRig {
     let camera = CameraModel {
         width: 640,
         height: 480,
-        intrinsics: Intrinsics { fx: 700.0, fy: 700.0, cx: 318.0, cy: 243.0, skew: 0.0, k1: -0.08, k2: 0.02 },
+        intrinsics: Intrinsics {
+            fx: 700.0,
+            fy: 700.0,
+            cx: 318.0,
+            cy: 243.0,
+            skew: 0.0,
+            k1: -0.08,
+            k2: 0.02,
+            ..Intrinsics::default()
+        },
         // The camera in the rig's x = 0 plane at negative y: the yaw convention of `turntable`.
         pose: Pose::look_at(Vector3::new(0.0, -0.40, 0.33), Vector3::new(0.0, 0.0, 0.01), Vector3::z()),
     };

@@ -36,8 +36,11 @@ pub struct CalibrationOptions {
     /// Hold the principal point at this pixel position `(cx, cy)` instead of estimating it (needed
     /// when there are only one or two views).
     pub fixed_principal_point: Option<(f64, f64)>,
-    /// Estimate the radial distortion `k1`, `k2`; when false they are held at 0.
+    /// Estimate the radial distortion `k1`, `k2`; when false every distortion term is held at 0.
     pub estimate_distortion: bool,
+    /// With [`CalibrationOptions::estimate_distortion`], also estimate `p1`, `p2`, `k3` (OpenCV's
+    /// five-term fit); when false they are held at 0.
+    pub full_distortion: bool,
     /// Levenberg-Marquardt iteration limit.
     pub max_iterations: usize,
 }
@@ -47,6 +50,7 @@ impl Default for CalibrationOptions {
         CalibrationOptions {
             fixed_principal_point: None,
             estimate_distortion: true,
+            full_distortion: false,
             max_iterations: DEFAULT_ITERATIONS,
         }
     }
@@ -55,7 +59,7 @@ impl Default for CalibrationOptions {
 /// A camera calibration from several board views.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CameraCalibrationResult {
-    /// Intrinsics, pixels; skew 0; `k1`, `k2` radial distortion.
+    /// Intrinsics, pixels; skew 0; distortion as estimated (see [`CalibrationOptions`]).
     pub intrinsics: Intrinsics,
     /// Board -> camera pose of each view, metres, in input order.
     pub poses: Vec<Pose>,
@@ -304,9 +308,13 @@ fn view_residuals(intr: &Intrinsics, pose: &Pose, view: &PlanarView, out: &mut [
     }
 }
 
+/// Intrinsic parameters of the refinement: fx fy cx cy k1 k2 p1 p2 k3.
+const NI: usize = 9;
+
 /// Calibrate a camera from views of a planar board: Zhang's closed form, then Levenberg-Marquardt
 /// over `fx, fy, cx, cy` (unless [`CalibrationOptions::fixed_principal_point`]), `k1, k2` (if
-/// [`CalibrationOptions::estimate_distortion`]) and each view's pose. Needs at least 3 views with a
+/// [`CalibrationOptions::estimate_distortion`]), `p1, p2, k3` (if also
+/// [`CalibrationOptions::full_distortion`]) and each view's pose. Needs at least 3 views with a
 /// free principal point, 1 with a fixed one; the boards must be tilted (not all parallel to the
 /// image plane or to each other).
 pub fn calibrate_camera(
@@ -349,15 +357,17 @@ pub fn calibrate_camera(
     }
     let poses: Vec<Pose> = hs.iter().map(|hn| pose_from_homography(&(n_inv * hn), &k_inv)).collect();
 
-    // Parameters: fx fy cx cy k1 k2, then per view rotation vector (3) and translation (3, metres).
-    let mut p0 = vec![init.fx, init.fy, init.cx, init.cy, 0.0, 0.0];
+    // Parameters: fx fy cx cy k1 k2 p1 p2 k3, then per view rotation vector (3) and translation
+    // (3, metres).
+    let mut p0 = vec![init.fx, init.fy, init.cx, init.cy, 0.0, 0.0, 0.0, 0.0, 0.0];
     for pose in &poses {
         let r = rotation_vector(&pose.rotation);
         p0.extend_from_slice(&[r.x, r.y, r.z, pose.translation.x, pose.translation.y, pose.translation.z]);
     }
     let pp_step = if options.fixed_principal_point.is_some() { 0.0 } else { 1e-4 };
     let k_step = if options.estimate_distortion { 1e-7 } else { 0.0 };
-    let mut steps = vec![1e-4, 1e-4, pp_step, pp_step, k_step, k_step];
+    let full_step = if options.full_distortion { k_step } else { 0.0 };
+    let mut steps = vec![1e-4, 1e-4, pp_step, pp_step, k_step, k_step, full_step, full_step, full_step];
     for pose in &poses {
         let t = pose.translation.norm().max(1e-3);
         steps.extend_from_slice(&[1e-7, 1e-7, 1e-7, 1e-7 * t, 1e-7 * t, 1e-7 * t]);
@@ -372,29 +382,24 @@ pub fn calibrate_camera(
         .collect();
     let m = 2 * all.len();
     let unpack =
-        |p: &DVector<f64>| Intrinsics { fx: p[0], fy: p[1], cx: p[2], cy: p[3], skew: 0.0, k1: p[4], k2: p[5] };
+        |p: &DVector<f64>| Intrinsics::new(p[0], p[1], p[2], p[3]).with_distortion([p[4], p[5], p[6], p[7], p[8]]);
     let res = lm::minimise(DVector::from_vec(p0), &steps, options.max_iterations, |p, r| {
         if r.len() != m {
             *r = DVector::zeros(m);
         }
         let intr = unpack(p);
         for (i, v) in views.iter().enumerate() {
-            let pose = pose_from_params(&p.as_slice()[6 + 6 * i..12 + 6 * i]);
+            let pose = pose_from_params(&p.as_slice()[NI + 6 * i..NI + 6 + 6 * i]);
             let o = offsets[i];
             view_residuals(&intr, &pose, v, &mut r.as_mut_slice()[o..o + 2 * v.object.len()]);
         }
     });
     let intrinsics = unpack(&res.params);
-    if ![intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.k1, intrinsics.k2]
-        .iter()
-        .all(|x| x.is_finite())
-        || intrinsics.fx <= 0.0
-        || intrinsics.fy <= 0.0
-    {
+    if !intrinsics.is_valid() {
         return Err(CalibrationError::Degenerate { reason: "the refinement diverged" });
     }
     let poses: Vec<Pose> =
-        (0..views.len()).map(|i| pose_from_params(&res.params.as_slice()[6 + 6 * i..12 + 6 * i])).collect();
+        (0..views.len()).map(|i| pose_from_params(&res.params.as_slice()[NI + 6 * i..NI + 6 + 6 * i])).collect();
     let max_tilt =
         poses.iter().map(|p| p.rotation.column(2).z.abs().clamp(0.0, 1.0).acos().to_degrees()).fold(0.0, f64::max);
     if max_tilt < MIN_MAX_TILT_DEG {

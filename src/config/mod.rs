@@ -64,6 +64,10 @@ pub enum ConfigError {
         /// Every problem found.
         problems: Vec<Problem>,
     },
+    /// The `[projector] procam` file could not be used (the message names the rig file, the line of
+    /// `projector.procam` and the procam file; the source is the calibration layer's error).
+    #[error("{0}")]
+    Procam(Box<dyn std::error::Error + Send + Sync>),
     /// The calibration file named by `[rig] calibration` could not be read or does not fit the rig.
     #[error("{path}:{line}: `rig.calibration`: cannot use the calibration file")]
     Calibration {
@@ -536,7 +540,7 @@ impl RigConfig {
                 if !(k.fx.is_finite() && k.fx > 0.0 && k.fy.is_finite() && k.fy > 0.0) {
                     bad(&format!("{section}.calibration.intrinsics.fx"), "focal lengths must be positive".into());
                 }
-                if ![k.cx, k.cy, k.skew, k.k1, k.k2].iter().all(|v| v.is_finite()) {
+                if ![k.cx, k.cy, k.skew].iter().chain(k.distortion().iter()).all(|v| v.is_finite()) {
                     bad(&format!("{section}.calibration.intrinsics"), "values must be finite".into());
                 }
                 match &cal.pose {
@@ -599,6 +603,9 @@ impl RigConfig {
             Some(ProjectorConfig::Fbdev(p)) => {
                 if let Some(cal) = &p.calibration {
                     check_camera(&mut bad, "projector", p.width, p.height, cal);
+                    if p.procam.is_some() {
+                        bad("projector.procam", "give either `procam` or `[projector.calibration]`, not both".into());
+                    }
                 }
             }
             Some(ProjectorConfig::Window(p)) => {

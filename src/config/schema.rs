@@ -592,6 +592,12 @@ pub struct FbdevProjectorConfig {
     /// `[projector.calibration]`: intrinsics and pose in the rig frame, for triangulation.
     #[serde(default)]
     pub calibration: Option<CameraCalibration>,
+    /// A projector-camera calibration file written by `scanrig calibrate projector` (relative to
+    /// the rig file; square size in metres so its translation is in metres). When set, it gives the
+    /// projector's intrinsics and its rig-frame pose (its projector <- camera transform composed with
+    /// the camera's rig-frame pose), replacing `[projector.calibration]`.
+    #[serde(default)]
+    pub procam: Option<std::path::PathBuf>,
 }
 
 fn default_refresh_hz() -> f64 {

@@ -178,3 +178,54 @@ fn a_grid_above_the_memory_budget_is_refused_with_the_estimate() {
     let ok = crate::config::parse(&text, std::path::Path::new("rig.toml")).expect("shipped rig");
     assert!(ok.memory_estimate().total() < 2048 * 1024 * 1024);
 }
+
+#[cfg(feature = "fbdev")]
+#[test]
+fn a_rig_projector_takes_its_pose_from_a_procam_file() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cam = crate::geometry::Intrinsics::new(900.0, 900.0, 320.0, 240.0);
+    let proj =
+        crate::geometry::Intrinsics::new(1200.0, 1200.0, 512.0, 700.0).with_distortion([0.1, 0.0, 1e-3, 0.0, 0.0]);
+    let file = crate::calibration::procam_file::ProcamFile {
+        camera: cam,
+        projector: proj,
+        projector_width: 1024,
+        projector_height: 768,
+        graycode_step: 1,
+        rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        translation: [-0.2, 0.0, 0.0],
+        camera_rms_px: 0.1,
+        projector_rms_px: 0.2,
+        views: 3,
+    };
+    crate::calibration::procam_file::write_procam_file(&dir.path().join("procam.toml"), &file).expect("write");
+    let rig =
+        std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/simulated.toml"))
+            .expect("rig");
+    // Swap the simulated projector (if any) for an fbdev one that names the procam file.
+    let mut doc: toml::Table = toml::from_str(&rig).expect("toml");
+    doc.insert(
+        "projector".into(),
+        toml::Value::Table(
+            toml::from_str(
+                "kind = \"fbdev\"\ndevice = \"/dev/fb1\"\nwidth = 1024\nheight = 768\nprocam = \"procam.toml\"\n",
+            )
+            .expect("table"),
+        ),
+    );
+    let path = dir.path().join("rig.toml");
+    let text = toml::to_string(&doc).expect("serialise");
+    std::fs::write(&path, &text).expect("write rig");
+    let config = crate::config::load(&path).expect("loads with the procam file");
+    let model = config.projector.as_ref().and_then(|p| p.model()).expect("projector model");
+    assert_eq!(model.intrinsics, proj);
+    // The projector centre is the camera centre moved by the baseline, in the rig frame.
+    let c = config.camera.model();
+    let expected = c.centre() + c.pose.rotation.transpose() * crate::geometry::Vector3::new(0.2, 0.0, 0.0);
+    assert!((model.centre() - expected).norm() < 1e-12, "{} vs {expected}", model.centre());
+    // A procam file for another projector size is refused, naming the file.
+    let wrong = text.replace("width = 1024", "width = 800");
+    std::fs::write(&path, wrong).expect("write rig");
+    let e = crate::config::load(&path).expect_err("size mismatch");
+    assert!(format!("{e}").contains("projector.procam"), "{e}");
+}

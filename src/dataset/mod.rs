@@ -9,7 +9,11 @@
 //!   decomposition (`K` upper triangular with a positive diagonal, `R` a rotation). Blank lines and
 //!   lines starting with `#` are ignored.
 //!
-//! Cameras have no lens distortion in either format. Image names are relative to the data set directory.
+//! - **COLMAP text model**: a directory with `cameras.txt` and `images.txt` (see [`parse_colmap`]),
+//!   with the models' lens distortion.
+//!
+//! Cameras have no lens distortion in the first two formats. Image names are relative to the data set
+//! directory.
 //!
 //! # View selections
 //! Either a file with one image name per line (blank lines and `#` comments ignored), or a
@@ -165,6 +169,24 @@ pub enum DatasetError {
         /// Image height, px.
         expected_height: u32,
     },
+    /// A COLMAP camera model this project's lens model cannot represent.
+    #[error("{path}:{line}: camera model {model} is not supported (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV with k4..k6 = 0)")]
+    UnsupportedCameraModel {
+        /// The cameras.txt file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+        /// The model name.
+        model: String,
+    },
+    /// A depth map is not a single-channel 16-bit PNG.
+    #[error("{path}: a depth map must be a single-channel 16-bit PNG in millimetres, found {found}")]
+    DepthFormat {
+        /// The file.
+        path: PathBuf,
+        /// What the file is.
+        found: String,
+    },
     /// No calibration file was given and none was found.
     #[error("{dir}: no calibration file (*_par.txt) found")]
     NoCalibration {
@@ -268,19 +290,39 @@ pub fn parse_par(text: &str, path: &Path) -> Result<Vec<Calibration>, DatasetErr
     Ok(out)
 }
 
-/// Decompose `P = K [R | t]` (RQ decomposition of the left 3x3 block, `K` with positive diagonal
-/// normalised so `K33 = 1`, `R` a proper rotation). `None` when the block is singular.
+/// Decompose `P = K [R | t]` with the overall sign of `P` taken from the determinant of its left 3x3
+/// block (right for a right-handed world frame; see [`decompose_projection_facing`] for the general
+/// case). `None` when the block is singular.
 pub fn decompose_projection(p: &nalgebra::Matrix3x4<f64>) -> Option<(Intrinsics, Pose)> {
-    let mut m: Matrix3<f64> = p.fixed_view::<3, 3>(0, 0).into_owned();
-    let mut p4: Vector3<f64> = p.column(3).into_owned();
-    let det = m.determinant();
+    let det = p.fixed_view::<3, 3>(0, 0).determinant();
     if !det.is_finite() || det.abs() < 1e-300 {
         return None;
     }
-    if det < 0.0 {
-        // P is defined up to scale: flip the sign so R comes out a rotation.
-        m = -m;
-        p4 = -p4;
+    decompose_signed(&(p * det.signum()))
+}
+
+/// Decompose `P = K [R | t]` so that `scene` (a point of the scene, world frame) lies in front of the
+/// camera: `P` is defined up to scale, and the sign of that scale is what says which way the camera
+/// looks. `K` is upper triangular with a positive diagonal (normalised so `K33 = 1`); `R` is
+/// orthogonal, a proper rotation for a right-handed world frame and a rotation times a mirror
+/// (determinant -1) when the world frame is left-handed (published calibrations exist in mirrored
+/// frames): projection, rays and carving work the same, the reconstruction comes out in that frame.
+/// `None` when the block is singular or `scene` lies on the camera's focal plane.
+pub fn decompose_projection_facing(p: &nalgebra::Matrix3x4<f64>, scene: &Vector3<f64>) -> Option<(Intrinsics, Pose)> {
+    let w = (p * scene.push(1.0)).z;
+    if !w.is_finite() || w == 0.0 {
+        return None;
+    }
+    decompose_signed(&(p * w.signum()))
+}
+
+/// RQ decomposition of `P` as given (no sign change): `K` with positive diagonal, `R` orthogonal.
+fn decompose_signed(p: &nalgebra::Matrix3x4<f64>) -> Option<(Intrinsics, Pose)> {
+    let m: Matrix3<f64> = p.fixed_view::<3, 3>(0, 0).into_owned();
+    let p4: Vector3<f64> = p.column(3).into_owned();
+    let det = m.determinant();
+    if !det.is_finite() || det.abs() < 1e-300 {
+        return None;
     }
     let rows = [m.row(0).transpose(), m.row(1).transpose(), m.row(2).transpose()];
     let k33 = rows[2].norm();
@@ -303,9 +345,38 @@ pub fn decompose_projection(p: &nalgebra::Matrix3x4<f64>) -> Option<(Intrinsics,
     Some((Intrinsics::from_matrix(&k), Pose { rotation, translation: t }))
 }
 
+/// The point nearest (least squares) to every camera's optical axis, world frame: where a set of
+/// cameras looking at one object converge. Needs two or more cameras whose axes are not all
+/// parallel; independent of the sign of each `P` (the axis is the line through the centre along the
+/// third row of the left block). `None` otherwise.
+pub fn axes_convergence_point(projections: &[nalgebra::Matrix3x4<f64>]) -> Option<Vector3<f64>> {
+    let mut a = Matrix3::zeros();
+    let mut b = Vector3::zeros();
+    for p in projections {
+        let m: Matrix3<f64> = p.fixed_view::<3, 3>(0, 0).into_owned();
+        let centre = -(m.try_inverse()? * p.column(3));
+        let d = m.row(2).transpose().normalize();
+        let proj = Matrix3::identity() - d * d.transpose();
+        a += proj;
+        b += proj * centre;
+    }
+    let eig = a.symmetric_eigen();
+    let smallest = eig.eigenvalues.iter().copied().fold(f64::INFINITY, f64::min);
+    let well_conditioned = smallest > 1e-6 * projections.len() as f64;
+    if projections.len() < 2 || !well_conditioned {
+        return None;
+    }
+    a.try_inverse().map(|inv| inv * b).filter(|x| x.iter().all(|v| v.is_finite()))
+}
+
 /// Parse a projection-matrix file's text (`name p11 .. p34` per line); `path` is used in errors.
+///
+/// Each `P` may carry either overall sign and the world frame may be left-handed: which way a camera
+/// looks follows from the scene lying in front of it, the scene being where the cameras' optical
+/// axes converge ([`axes_convergence_point`]). A file of one camera (or of parallel axes) falls back
+/// to the determinant's sign, i.e. assumes a right-handed world frame.
 pub fn parse_projections(text: &str, path: &Path) -> Result<Vec<Calibration>, DatasetError> {
-    let mut out = Vec::new();
+    let mut raw = Vec::new();
     for (line, l) in content_lines(text) {
         let tokens: Vec<&str> = l.split_whitespace().collect();
         if tokens.len() != 13 {
@@ -313,19 +384,155 @@ pub fn parse_projections(text: &str, path: &Path) -> Result<Vec<Calibration>, Da
         }
         let v = parse_numbers(path, line, &tokens[1..])?;
         let p = nalgebra::Matrix3x4::from_row_slice(&v);
-        let (intrinsics, pose) =
-            decompose_projection(&p).ok_or(DatasetError::DegenerateProjection { path: path.to_path_buf(), line })?;
-        out.push(Calibration { name: tokens[0].to_string(), intrinsics, pose, line });
+        if decompose_projection(&p).is_none() {
+            return Err(DatasetError::DegenerateProjection { path: path.to_path_buf(), line });
+        }
+        raw.push((tokens[0].to_string(), p, line));
+    }
+    if raw.is_empty() {
+        return Err(DatasetError::NoViews { path: path.to_path_buf() });
+    }
+    let ps: Vec<_> = raw.iter().map(|r| r.1).collect();
+    let scene = axes_convergence_point(&ps);
+    raw.into_iter()
+        .map(|(name, p, line)| {
+            let d = match &scene {
+                Some(x) => decompose_projection_facing(&p, x),
+                None => decompose_projection(&p),
+            };
+            let (intrinsics, pose) = d.ok_or(DatasetError::DegenerateProjection { path: path.to_path_buf(), line })?;
+            Ok(Calibration { name, intrinsics, pose, line })
+        })
+        .collect()
+}
+
+/// Parse COLMAP's text model: `cameras.txt` (`CAMERA_ID MODEL WIDTH HEIGHT PARAMS..`; models
+/// SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV with k4..k6 = 0) and
+/// `images.txt` (pairs of lines, `IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME` then the 2-D points,
+/// ignored). The quaternion and translation are world -> camera (`x_cam = R x + t`), COLMAP's
+/// convention; its pixel convention (the top-left pixel's centre at (0.5, 0.5)) is this project's.
+/// Lines are named in errors by file and number.
+pub fn parse_colmap(
+    cameras: &str,
+    cameras_path: &Path,
+    images: &str,
+    images_path: &Path,
+) -> Result<Vec<Calibration>, DatasetError> {
+    let mut cams = std::collections::HashMap::new();
+    for (line, l) in content_lines(cameras) {
+        let t: Vec<&str> = l.split_whitespace().collect();
+        if t.len() < 5 {
+            return Err(DatasetError::ValueCount {
+                path: cameras_path.to_path_buf(),
+                line,
+                expected: 5,
+                found: t.len(),
+            });
+        }
+        let v = parse_numbers(cameras_path, line, &t[4..])?;
+        let need = |n: usize| {
+            if v.len() == n {
+                Ok(())
+            } else {
+                Err(DatasetError::ValueCount {
+                    path: cameras_path.to_path_buf(),
+                    line,
+                    expected: 4 + n,
+                    found: t.len(),
+                })
+            }
+        };
+        let intr =
+            match t[1] {
+                "SIMPLE_PINHOLE" => need(3).map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]))?,
+                "PINHOLE" => need(4).map(|_| Intrinsics::new(v[0], v[1], v[2], v[3]))?,
+                "SIMPLE_RADIAL" => need(4)
+                    .map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]).with_distortion([v[3], 0.0, 0.0, 0.0, 0.0]))?,
+                "RADIAL" => need(5)
+                    .map(|_| Intrinsics::new(v[0], v[0], v[1], v[2]).with_distortion([v[3], v[4], 0.0, 0.0, 0.0]))?,
+                "OPENCV" => need(8)
+                    .map(|_| Intrinsics::new(v[0], v[1], v[2], v[3]).with_distortion([v[4], v[5], v[6], v[7], 0.0]))?,
+                "FULL_OPENCV" if v.len() == 12 && v[9..12].iter().all(|x| *x == 0.0) => {
+                    Intrinsics::new(v[0], v[1], v[2], v[3]).with_distortion([v[4], v[5], v[6], v[7], v[8]])
+                }
+                other => {
+                    return Err(DatasetError::UnsupportedCameraModel {
+                        path: cameras_path.to_path_buf(),
+                        line,
+                        model: other.to_string(),
+                    })
+                }
+            };
+        cams.insert(t[0].to_string(), intr);
+    }
+    let mut out = Vec::new();
+    let mut expect_header = true;
+    for (line, l) in images.lines().enumerate().map(|(n, l)| (n + 1, l.trim())) {
+        if l.starts_with('#') {
+            continue;
+        }
+        if !expect_header {
+            expect_header = true; // the 2-D points line (possibly empty)
+            continue;
+        }
+        if l.is_empty() {
+            continue;
+        }
+        expect_header = false;
+        let t: Vec<&str> = l.split_whitespace().collect();
+        if t.len() < 10 {
+            return Err(DatasetError::ValueCount {
+                path: images_path.to_path_buf(),
+                line,
+                expected: 10,
+                found: t.len(),
+            });
+        }
+        let v = parse_numbers(images_path, line, &t[1..8])?;
+        let q = nalgebra::Quaternion::new(v[0], v[1], v[2], v[3]);
+        let usable = q.norm() > 1e-12;
+        if !usable {
+            return Err(DatasetError::DegenerateProjection { path: images_path.to_path_buf(), line });
+        }
+        let rotation = nalgebra::UnitQuaternion::from_quaternion(q).to_rotation_matrix().into_inner();
+        let intrinsics = *cams.get(t[8]).ok_or_else(|| DatasetError::UnknownView {
+            source_name: format!(
+                "{}:{line}: camera id {} is not in {}",
+                images_path.display(),
+                t[8],
+                cameras_path.display()
+            ),
+            name: t[9..].join(" "),
+        })?;
+        out.push(Calibration {
+            name: t[9..].join(" "),
+            intrinsics,
+            pose: Pose { rotation, translation: Vector3::new(v[4], v[5], v[6]) },
+            line,
+        });
     }
     if out.is_empty() {
-        return Err(DatasetError::NoViews { path: path.to_path_buf() });
+        return Err(DatasetError::NoViews { path: images_path.to_path_buf() });
     }
     Ok(out)
 }
 
-/// Read a calibration file: the Middlebury format when the first content line is a single integer,
-/// projection matrices otherwise.
+/// Read a calibration: a COLMAP text model when `path` is a directory holding `cameras.txt` and
+/// `images.txt` (or one of those two files); otherwise a file, in the Middlebury format when the
+/// first content line is a single integer, projection matrices otherwise.
 pub fn read_calibration(path: &Path) -> Result<Vec<Calibration>, DatasetError> {
+    let colmap_dir = if path.is_dir() {
+        Some(path.to_path_buf())
+    } else {
+        match path.file_name().and_then(|n| n.to_str()) {
+            Some("cameras.txt" | "images.txt") => path.parent().map(Path::to_path_buf),
+            _ => None,
+        }
+    };
+    if let Some(dir) = colmap_dir {
+        let (c, i) = (dir.join("cameras.txt"), dir.join("images.txt"));
+        return parse_colmap(&read_text(&c)?, &c, &read_text(&i)?, &i);
+    }
     let text = read_text(path)?;
     let first = content_lines(&text).next().map(|(_, l)| l.split_whitespace().count() == 1).unwrap_or(false);
     if first {
@@ -467,15 +674,76 @@ fn find_par(dir: &Path) -> Result<PathBuf, DatasetError> {
     found.into_iter().next().ok_or_else(|| DatasetError::NoCalibration { dir: dir.to_path_buf() })
 }
 
-fn load_rgb(path: &Path) -> Result<RgbImage, DatasetError> {
-    Ok(image::open(path).map_err(|source| DatasetError::Image { path: path.to_path_buf(), source })?.to_rgb8())
+/// Open an image of any format the project reads: PNG (8 or 16 bits per channel), JPEG, PNM
+/// (PBM/PGM/PPM), TIFF and BMP, told apart by their content. Anything else, and any decoding error,
+/// is a [`DatasetError::Image`] naming the file.
+pub fn open_image(path: &Path) -> Result<image::DynamicImage, DatasetError> {
+    let err = |source| DatasetError::Image { path: path.to_path_buf(), source };
+    image::ImageReader::open(path)
+        .map_err(|e| err(image::ImageError::IoError(e)))?
+        .with_guessed_format()
+        .map_err(|e| err(image::ImageError::IoError(e)))?
+        .decode()
+        .map_err(err)
 }
 
-/// Load a mask PNG (any non-zero luma is object).
+/// Load an image as 8-bit RGB (16-bit images are scaled to 8 bits); see [`open_image`].
+pub fn load_rgb(path: &Path) -> Result<RgbImage, DatasetError> {
+    Ok(open_image(path)?.to_rgb8())
+}
+
+/// Load an image as 8-bit grey (luma); see [`open_image`].
+pub fn load_gray(path: &Path) -> Result<image::GrayImage, DatasetError> {
+    Ok(open_image(path)?.to_luma8())
+}
+
+/// Load a mask image (any format of [`open_image`]; any non-zero luma is object).
 pub fn load_mask(path: &Path) -> Result<Mask, DatasetError> {
-    let img = image::open(path).map_err(|source| DatasetError::Image { path: path.to_path_buf(), source })?.to_luma8();
+    let img = load_gray(path)?;
     let (w, h) = img.dimensions();
     Ok(Mask::from_fn(w, h, |u, v| img.get_pixel(u, v).0[0] != 0))
+}
+
+/// A depth map read from disk.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DepthImage {
+    /// Width, pixels.
+    pub width: u32,
+    /// Height, pixels.
+    pub height: u32,
+    /// Depth along the optical axis (camera-frame `z`), metres, row-major; 0 = no measurement (as
+    /// [`crate::pipeline::depth_fusion::Tsdf::integrate`] takes it).
+    pub depth_m: Vec<f32>,
+}
+
+/// TUM RGB-D's and Open3D's depth scale: a 16-bit PNG value of 1000 is one metre.
+pub const DEPTH_PNG_UNITS_PER_M: f32 = 1000.0;
+
+/// Load a depth map stored as a single-channel 16-bit PNG in millimetres (`value / 1000` metres, 0 =
+/// no measurement), the convention of TUM RGB-D and Open3D. Any other image (8-bit, colour, not a
+/// PNG) is [`DatasetError::DepthFormat`] naming the file.
+pub fn load_depth_png_mm(path: &Path) -> Result<DepthImage, DatasetError> {
+    let bytes = std::fs::read(path).map_err(|source| DatasetError::Read { path: path.to_path_buf(), source })?;
+    let format = image::guess_format(&bytes).ok();
+    if format != Some(image::ImageFormat::Png) {
+        return Err(DatasetError::DepthFormat {
+            path: path.to_path_buf(),
+            found: format.map_or_else(|| "an unknown format".to_string(), |f| format!("{f:?}")),
+        });
+    }
+    let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+        .map_err(|source| DatasetError::Image { path: path.to_path_buf(), source })?;
+    match img {
+        image::DynamicImage::ImageLuma16(buf) => {
+            let (width, height) = buf.dimensions();
+            let depth_m = buf.into_raw().into_iter().map(|v| v as f32 / DEPTH_PNG_UNITS_PER_M).collect();
+            Ok(DepthImage { width, height, depth_m })
+        }
+        other => Err(DatasetError::DepthFormat {
+            path: path.to_path_buf(),
+            found: format!("a PNG of {:?} pixels", other.color()),
+        }),
+    }
 }
 
 /// Load a data set (see the module docs). Masks are extracted in parallel.
@@ -575,7 +843,16 @@ mod tests {
         let cam = CameraModel {
             width: 640,
             height: 480,
-            intrinsics: Intrinsics { fx: 900.0, fy: 880.0, cx: 300.0, cy: 250.0, skew: 1.5, k1: 0.0, k2: 0.0 },
+            intrinsics: Intrinsics {
+                fx: 900.0,
+                fy: 880.0,
+                cx: 300.0,
+                cy: 250.0,
+                skew: 1.5,
+                k1: 0.0,
+                k2: 0.0,
+                ..Intrinsics::default()
+            },
             pose: Pose::look_at(Vector3::new(0.3, -0.4, 0.2), Vector3::new(0.0, 0.0, 0.05), Vector3::z()),
         };
         for scale in [1.0, -2.5, 0.01] {
@@ -587,6 +864,112 @@ mod tests {
             assert!((pose.translation - cam.pose.translation).norm() < 1e-9);
         }
         assert!(decompose_projection(&nalgebra::Matrix3x4::zeros()).is_none());
+    }
+
+    #[test]
+    fn the_scene_decides_which_way_a_camera_looks() {
+        let cam = CameraModel {
+            width: 640,
+            height: 480,
+            intrinsics: Intrinsics::new(900.0, 880.0, 300.0, 250.0),
+            pose: Pose::look_at(Vector3::new(0.3, -0.4, 0.2), Vector3::new(0.0, 0.0, 0.05), Vector3::z()),
+        };
+        let scene = Vector3::new(0.01, 0.02, 0.06);
+        // Mirrored world (x' = -x): P' = P diag(-1, 1, 1, 1) has a negative determinant with the
+        // scene in front; either overall sign decomposes to a camera that sees the mirrored scene.
+        let mut mirrored = cam.projection_matrix();
+        mirrored.column_mut(0).neg_mut();
+        let scene_m = Vector3::new(-scene.x, scene.y, scene.z);
+        for p in [mirrored, -mirrored * 3.0] {
+            let (k, pose) = decompose_projection_facing(&p, &scene_m).expect("decomposes");
+            assert!((k.fx - 900.0).abs() < 1e-6 && (k.cy - 250.0).abs() < 1e-6);
+            assert!((pose.rotation.determinant() + 1.0).abs() < 1e-9, "a mirror, not a rotation");
+            let m = CameraModel { intrinsics: k, pose, ..cam };
+            let a = cam.project(&scene).expect("in front");
+            let b = m.project(&scene_m).expect("in front of the mirrored camera too");
+            assert!((a - b).norm() < 1e-6, "{a} {b}");
+        }
+        // The determinant rule gets the mirrored camera backwards: the scene ends up behind it.
+        let (k, pose) = decompose_projection(&mirrored).expect("decomposes");
+        assert!(CameraModel { intrinsics: k, pose, ..cam }.project(&scene_m).is_none());
+        // The axes of cameras around the object converge near it.
+        let cams: Vec<_> = (0..6)
+            .map(|i| {
+                let a = i as f64;
+                let eye = Vector3::new(0.5 * a.cos(), 0.5 * a.sin(), 0.2);
+                CameraModel { pose: Pose::look_at(eye, scene, Vector3::z()), ..cam }.projection_matrix()
+                    * if i % 2 == 0 { 1.0 } else { -1.0 }
+            })
+            .collect();
+        let x = axes_convergence_point(&cams).expect("converge");
+        assert!((x - scene).norm() < 1e-9, "{x}");
+        assert!(axes_convergence_point(&cams[..1]).is_none());
+    }
+
+    #[test]
+    fn colmap_text_model_matches_the_cameras_it_was_written_from() {
+        let cam = CameraModel {
+            width: 640,
+            height: 480,
+            intrinsics: Intrinsics::new(900.0, 880.0, 300.0, 250.0).with_distortion([-0.1, 0.02, 1e-3, -1e-3, 0.0]),
+            pose: Pose::look_at(Vector3::new(0.3, -0.4, 0.2), Vector3::new(0.0, 0.0, 0.05), Vector3::z()),
+        };
+        let q = nalgebra::UnitQuaternion::from_matrix(&cam.pose.rotation);
+        let t = cam.pose.translation;
+        let cameras = "# Camera list\n1 OPENCV 640 480 900 880 300 250 -0.1 0.02 0.001 -0.001\n2 SIMPLE_PINHOLE 640 480 500 320 240\n";
+        let images = format!(
+            "# Image list\n1 {} {} {} {} {} {} {} 1 a.png\n10 20 -1\n2 1 0 0 0 0 0 1 2 b c.png\n\n",
+            q.w, q.i, q.j, q.k, t.x, t.y, t.z
+        );
+        let c = parse_colmap(cameras, Path::new("cameras.txt"), &images, Path::new("images.txt")).expect("parses");
+        assert_eq!(c.len(), 2);
+        assert_eq!(c[1].name, "b c.png");
+        let m = c[0].camera(640, 480);
+        let p = Vector3::new(0.01, 0.02, 0.04);
+        let (a, b) = (cam.project(&p).expect("a"), m.project(&p).expect("b"));
+        assert!((a - b).norm() < 1e-9, "{a} {b}");
+        assert_eq!(c[1].intrinsics.fx, 500.0);
+        let e = parse_colmap("1 FISHEYE 640 480 1 2 3 4\n", Path::new("cameras.txt"), &images, Path::new("images.txt"))
+            .expect_err("model");
+        assert!(e.to_string().starts_with("cameras.txt:1: camera model FISHEYE"), "{e}");
+    }
+
+    #[test]
+    fn every_image_format_reads_and_depth_pngs_are_millimetres() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let rgb = RgbImage::from_fn(5, 4, |x, y| image::Rgb([x as u8 * 40, y as u8 * 60, 7]));
+        // Saved under misleading extensions: the content decides the format.
+        for (name, fmt) in [
+            ("a.ppm", image::ImageFormat::Pnm),
+            ("b.tif", image::ImageFormat::Tiff),
+            ("c.bmp", image::ImageFormat::Bmp),
+            ("d.img", image::ImageFormat::Png),
+        ] {
+            let path = dir.path().join(name);
+            rgb.save_with_format(&path, fmt).expect("save");
+            assert_eq!(load_rgb(&path).expect(name), rgb, "{name}");
+        }
+        let grey16 = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(3, 2, |x, y| {
+            image::Luma([(x + 3 * y) as u16 * 1000])
+        });
+        let depth = dir.path().join("depth.png");
+        grey16.save(&depth).expect("save 16-bit");
+        let d = load_depth_png_mm(&depth).expect("depth");
+        assert_eq!((d.width, d.height), (3, 2));
+        assert_eq!(d.depth_m, vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0]);
+        // A 16-bit PNG also reads as an image (scaled to 8 bits).
+        assert_eq!(
+            load_gray(&depth).expect("grey").get_pixel(2, 1).0[0],
+            ((5000.0f64 / 65535.0) * 255.0).round() as u8
+        );
+        let e = load_depth_png_mm(&dir.path().join("a.ppm")).expect_err("not a PNG");
+        assert!(matches!(e, DatasetError::DepthFormat { .. }) && e.to_string().contains("a.ppm"), "{e}");
+        let e = load_depth_png_mm(&dir.path().join("d.img")).expect_err("8-bit RGB");
+        assert!(e.to_string().contains("d.img") && e.to_string().contains("16-bit"), "{e}");
+        let junk = dir.path().join("junk.png");
+        std::fs::write(&junk, b"not an image at all").expect("write");
+        let e = load_rgb(&junk).expect_err("junk");
+        assert!(e.to_string().contains("junk.png"), "{e}");
     }
 
     #[test]

@@ -1,11 +1,19 @@
-//! Pinhole camera with two-term radial distortion.
+//! Pinhole camera with Brown-Conrady lens distortion (OpenCV's five-term model `k1 k2 p1 p2 k3`).
 
 use nalgebra::{Matrix3, Matrix3x4, Point2, Vector3};
 use serde::{Deserialize, Serialize};
 
-/// Pinhole intrinsics in pixels (image origin at the top-left corner, see the module docs),
-/// with Brown radial distortion `x_d = x (1 + k1 r² + k2 r⁴)` on normalised coordinates.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+/// Pinhole intrinsics in pixels (image origin at the top-left corner, see the module docs) with
+/// Brown-Conrady distortion, OpenCV's model, names and order (`k1 k2 p1 p2 k3`), on normalised
+/// coordinates `(x, y) = (X/Z, Y/Z)` in the camera frame:
+/// `x_d = x(1 + k1 r² + k2 r⁴ + k3 r⁶) + 2 p1 x y + p2 (r² + 2x²)`,
+/// `y_d = y(1 + k1 r² + k2 r⁴ + k3 r⁶) + p1 (r² + 2y²) + 2 p2 x y`, then
+/// `u = fx x_d + skew y_d + cx`, `v = fy y_d + cy` pixels.
+///
+/// The one lens model of the project: cameras and projectors, carving, rendering, triangulation,
+/// calibration and calibration files all use it. [`Default`] is all zeros, for struct-update syntax
+/// (`Intrinsics { fx: 800.0, ..Intrinsics::default() }`); [`Intrinsics::new`] builds a pinhole.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Intrinsics {
     /// Focal length along x, pixels.
@@ -19,15 +27,39 @@ pub struct Intrinsics {
     /// Skew (K[0][1]), pixels; 0 for every modern sensor.
     #[serde(default)]
     pub skew: f64,
-    /// First radial distortion coefficient (dimensionless).
+    /// Radial distortion coefficient of r² (dimensionless).
     #[serde(default)]
     pub k1: f64,
-    /// Second radial distortion coefficient (dimensionless).
+    /// Radial distortion coefficient of r⁴ (dimensionless).
     #[serde(default)]
     pub k2: f64,
+    /// First tangential distortion coefficient (dimensionless).
+    #[serde(default)]
+    pub p1: f64,
+    /// Second tangential distortion coefficient (dimensionless).
+    #[serde(default)]
+    pub p2: f64,
+    /// Radial distortion coefficient of r⁶ (dimensionless).
+    #[serde(default)]
+    pub k3: f64,
 }
 
 impl Intrinsics {
+    /// A distortion-free pinhole: focal lengths and principal point in pixels, no skew.
+    pub fn new(fx: f64, fy: f64, cx: f64, cy: f64) -> Self {
+        Intrinsics { fx, fy, cx, cy, ..Intrinsics::default() }
+    }
+
+    /// The same intrinsics with OpenCV's distortion vector `(k1, k2, p1, p2, k3)`.
+    pub fn with_distortion(self, d: [f64; 5]) -> Self {
+        Intrinsics { k1: d[0], k2: d[1], p1: d[2], p2: d[3], k3: d[4], ..self }
+    }
+
+    /// OpenCV's distortion vector `(k1, k2, p1, p2, k3)`.
+    pub fn distortion(&self) -> [f64; 5] {
+        [self.k1, self.k2, self.p1, self.p2, self.k3]
+    }
+
     /// The 3x3 calibration matrix K.
     pub fn matrix(&self) -> Matrix3<f64> {
         Matrix3::new(self.fx, self.skew, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0)
@@ -42,35 +74,51 @@ impl Intrinsics {
             cx: k[(0, 2)] / s,
             cy: k[(1, 2)] / s,
             skew: k[(0, 1)] / s,
-            k1: 0.0,
-            k2: 0.0,
+            ..Intrinsics::default()
         }
+    }
+
+    /// The same intrinsics without distortion.
+    pub fn pinhole(&self) -> Intrinsics {
+        Intrinsics { fx: self.fx, fy: self.fy, cx: self.cx, cy: self.cy, skew: self.skew, ..Intrinsics::default() }
     }
 
     /// True when any distortion coefficient is non-zero.
     pub fn has_distortion(&self) -> bool {
-        self.k1 != 0.0 || self.k2 != 0.0
+        self.distortion().iter().any(|&d| d != 0.0)
+    }
+
+    /// True when every value is finite and both focal lengths are positive.
+    pub fn is_valid(&self) -> bool {
+        [self.fx, self.fy, self.cx, self.cy, self.skew].iter().chain(self.distortion().iter()).all(|v| v.is_finite())
+            && self.fx > 0.0
+            && self.fy > 0.0
     }
 
     /// Apply distortion to normalised coordinates.
     pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
         let r2 = x * x + y * y;
-        let f = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
-        (x * f, y * f)
+        let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
+        (
+            x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x),
+            y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y,
+        )
     }
 
-    /// Invert [`Intrinsics::distort`] by fixed-point iteration (converges for the mild distortion of
-    /// real lenses, |k1 r²| < 0.5).
+    /// Invert [`Intrinsics::distort`] by fixed-point iteration, as OpenCV's `undistortPoints` does
+    /// (converges for real lenses within their field of view).
     pub fn undistort(&self, xd: f64, yd: f64) -> (f64, f64) {
         if !self.has_distortion() {
             return (xd, yd);
         }
         let (mut x, mut y) = (xd, yd);
-        for _ in 0..20 {
+        for _ in 0..30 {
             let r2 = x * x + y * y;
-            let f = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
-            x = xd / f;
-            y = yd / f;
+            let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
+            let dx = 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
+            let dy = self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
+            x = (xd - dx) / radial;
+            y = (yd - dy) / radial;
         }
         (x, y)
     }
@@ -180,7 +228,7 @@ impl CameraModel {
     /// True when every intrinsic and pose value is finite (no NaN or infinity from a bad file).
     pub fn is_finite(&self) -> bool {
         let i = &self.intrinsics;
-        [i.fx, i.fy, i.cx, i.cy, i.skew, i.k1, i.k2].iter().all(|x| x.is_finite())
+        [i.fx, i.fy, i.cx, i.cy, i.skew].iter().chain(i.distortion().iter()).all(|x| x.is_finite())
             && self.pose.rotation.iter().all(|x| x.is_finite())
             && self.pose.translation.iter().all(|x| x.is_finite())
     }
@@ -200,7 +248,7 @@ mod tests {
         CameraModel {
             width: 640,
             height: 480,
-            intrinsics: Intrinsics { fx: 800.0, fy: 800.0, cx: 320.0, cy: 240.0, skew: 0.0, k1: -0.1, k2: 0.01 },
+            intrinsics: Intrinsics::new(800.0, 800.0, 320.0, 240.0).with_distortion([-0.1, 0.01, 1e-3, -2e-3, 0.02]),
             pose: Pose::look_at(Vector3::new(0.0, -0.5, 0.2), Vector3::new(0.0, 0.0, 0.05), Vector3::z()),
         }
     }
@@ -229,8 +277,7 @@ mod tests {
     #[test]
     fn projection_matrix_matches_project_without_distortion() {
         let mut c = cam();
-        c.intrinsics.k1 = 0.0;
-        c.intrinsics.k2 = 0.0;
+        c.intrinsics = c.intrinsics.pinhole();
         let p = Vector3::new(0.01, -0.02, 0.03);
         let h = c.projection_matrix() * p.push(1.0);
         let q = c.project(&p).expect("in front");

@@ -96,7 +96,16 @@ mod tests {
             triangles: vec![[0, 1, 2], [3, 4, 5]],
             colors: None,
         };
-        let intr = Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0, skew: 0.0, k1: 0.0, k2: 0.0 };
+        let intr = Intrinsics {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 50.0,
+            cy: 50.0,
+            skew: 0.0,
+            k1: 0.0,
+            k2: 0.0,
+            ..Intrinsics::default()
+        };
         let cam = |x: f64| CameraModel {
             width: 100,
             height: 100,

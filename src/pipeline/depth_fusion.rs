@@ -284,7 +284,16 @@ mod tests {
         let rig = CameraModel {
             width: 160,
             height: 120,
-            intrinsics: Intrinsics { fx: 300.0, fy: 300.0, cx: 80.0, cy: 60.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+            intrinsics: Intrinsics {
+                fx: 300.0,
+                fy: 300.0,
+                cx: 80.0,
+                cy: 60.0,
+                skew: 0.0,
+                k1: 0.0,
+                k2: 0.0,
+                ..Intrinsics::default()
+            },
             pose: Pose::look_at(Vector3::new(0.0, -0.25, 0.1), Vector3::zeros(), Vector3::z()),
         };
         rig.for_turntable_angle(angle_deg)

@@ -275,7 +275,16 @@ mod tests {
         CameraModel {
             width: 160,
             height: 120,
-            intrinsics: Intrinsics { fx: 400.0, fy: 400.0, cx: 80.0, cy: 60.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+            intrinsics: Intrinsics {
+                fx: 400.0,
+                fy: 400.0,
+                cx: 80.0,
+                cy: 60.0,
+                skew: 0.0,
+                k1: 0.0,
+                k2: 0.0,
+                ..Intrinsics::default()
+            },
             pose: Pose::look_at(Vector3::new(0.0, -0.4, 0.2), Vector3::new(0.0, 0.0, 0.03), Vector3::z()),
         }
     }

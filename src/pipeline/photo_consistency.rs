@@ -718,7 +718,7 @@ mod tests {
         let camera = CameraModel {
             width: 200,
             height: 150,
-            intrinsics: Intrinsics { fx: 200.0, fy: 200.0, cx: 100.0, cy: 75.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+            intrinsics: Intrinsics { fx: 200.0, fy: 200.0, cx: 100.0, cy: 75.0, ..Intrinsics::default() },
             pose: Pose::look_at(Vector3::new(0.0, -1.0, 0.0), Vector3::zeros(), Vector3::z()),
         };
         // A linear ramp (the mask's Laplacian cancels it) plus uniform noise of +-6 levels (sd 3.46).

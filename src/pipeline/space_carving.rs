@@ -103,6 +103,16 @@ struct Distortion {
     skew: f32,
     k1: f32,
     k2: f32,
+    p1: f32,
+    p2: f32,
+    k3: f32,
+}
+
+impl Distortion {
+    /// True when only the radial `k1`, `k2` terms are non-zero (cell bounds are exact for those).
+    fn radial_k1_k2_only(&self) -> bool {
+        self.p1 == 0.0 && self.p2 == 0.0 && self.k3 == 0.0
+    }
 }
 
 /// Per-view projection of voxel indices (see the module docs).
@@ -146,6 +156,9 @@ impl Projector {
             skew: intr.skew as f32,
             k1: intr.k1 as f32,
             k2: intr.k2 as f32,
+            p1: intr.p1 as f32,
+            p2: intr.p2 as f32,
+            k3: intr.k3 as f32,
         });
         Projector { a, d, dist, width: camera.width as usize, wf: camera.width as f32, hf: camera.height as f32, scale }
     }
@@ -163,8 +176,10 @@ impl Projector {
             Some(p) => {
                 let (xn, yn) = (x / z, y / z);
                 let r2 = xn * xn + yn * yn;
-                let f = 1.0 + p.k1 * r2 + p.k2 * r2 * r2;
-                let (xd, yd) = (xn * f, yn * f);
+                // Brown-Conrady, as geometry::Intrinsics::distort.
+                let f = 1.0 + r2 * (p.k1 + r2 * (p.k2 + r2 * p.k3));
+                let xd = xn * f + 2.0 * p.p1 * xn * yn + p.p2 * (r2 + 2.0 * xn * xn);
+                let yd = yn * f + p.p1 * (r2 + 2.0 * yn * yn) + 2.0 * p.p2 * xn * yn;
                 (p.fx * xd + p.skew * yd + p.cx, p.fy * yd + p.cy)
             }
         };
@@ -267,7 +282,10 @@ impl Projector {
         let (x0, x1, y0, y1) = (x0 - ex, x1 + ex, y0 - ey, y1 + ey);
         let rect = match &self.dist {
             None => [x0 - 1e-3, x1 + 1e-3, y0 - 1e-3, y1 + 1e-3],
-            Some(p) => distorted_rect(p, [x0, x1, y0, y1]),
+            Some(p) if p.radial_k1_k2_only() => distorted_rect(p, [x0, x1, y0, y1]),
+            // Tangential or r⁶ terms: no interval bound here; the cell is refined down to voxels,
+            // which use the exact per-voxel projection.
+            Some(_) => return CellBound::Unknown,
         };
         if rect.iter().all(|v| v.is_finite()) {
             CellBound::Rect(rect)

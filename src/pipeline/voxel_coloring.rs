@@ -998,7 +998,16 @@ mod tests {
         CameraModel {
             width: 160,
             height: 160,
-            intrinsics: Intrinsics { fx: 300.0, fy: 300.0, cx: 80.0, cy: 80.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+            intrinsics: Intrinsics {
+                fx: 300.0,
+                fy: 300.0,
+                cx: 80.0,
+                cy: 80.0,
+                skew: 0.0,
+                k1: 0.0,
+                k2: 0.0,
+                ..Intrinsics::default()
+            },
             pose: Pose::look_at(eye, target, Vector3::z()),
         }
     }

@@ -196,7 +196,16 @@ fn overhead_cup() -> (SimWorld, RayTable) {
     let cam = CameraModel {
         width: 64,
         height: 64,
-        intrinsics: Intrinsics { fx: 200.0, fy: 200.0, cx: 32.0, cy: 32.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+        intrinsics: Intrinsics {
+            fx: 200.0,
+            fy: 200.0,
+            cx: 32.0,
+            cy: 32.0,
+            skew: 0.0,
+            k1: 0.0,
+            k2: 0.0,
+            ..Intrinsics::default()
+        },
         pose: Pose::look_at(Vector3::new(0.0, 0.0, 0.5), Vector3::zeros(), Vector3::y()),
     };
     (world, RayTable::new(cam))

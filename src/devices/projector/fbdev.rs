@@ -300,6 +300,7 @@ mod tests {
             latency_ms: 0,
             refresh_hz: 60.0,
             calibration: None,
+            procam: None,
         };
         let e = FbdevProjector::open(&config).expect_err("absent");
         assert_eq!(e.kind(), crate::devices::ErrorKind::Disconnected);

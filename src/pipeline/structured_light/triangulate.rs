@@ -341,7 +341,16 @@ mod tests {
         CameraModel {
             width: w,
             height: h,
-            intrinsics: Intrinsics { fx: f, fy: f, cx: w as f64 / 2.0, cy: h as f64 / 2.0, skew: 0.0, k1, k2: 0.0 },
+            intrinsics: Intrinsics {
+                fx: f,
+                fy: f,
+                cx: w as f64 / 2.0,
+                cy: h as f64 / 2.0,
+                skew: 0.0,
+                k1,
+                k2: 0.0,
+                ..Intrinsics::default()
+            },
             pose: Pose::look_at(Vector3::from(eye), Vector3::from(target), Vector3::z()),
         }
     }

@@ -818,7 +818,16 @@ mod tests {
         CameraModel {
             width: w,
             height: h,
-            intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 16.0, cy: 8.0, skew: 0.0, k1: 0.0, k2: 0.0 },
+            intrinsics: Intrinsics {
+                fx: 100.0,
+                fy: 100.0,
+                cx: 16.0,
+                cy: 8.0,
+                skew: 0.0,
+                k1: 0.0,
+                k2: 0.0,
+                ..Intrinsics::default()
+            },
             pose: Pose { rotation: nalgebra::Matrix3::identity(), translation: nalgebra::Vector3::zeros() },
         }
     }
