@@ -68,7 +68,7 @@ fn run_peer(script: &str, args: &[&str]) -> Result<f64, String> {
 }
 
 fn intrinsics(w: u32, h: u32, f: f64) -> Intrinsics {
-    Intrinsics { fx: f, fy: f, cx: w as f64 / 2.0, cy: h as f64 / 2.0, skew: 0.0, k1: 0.0, k2: 0.0 }
+    Intrinsics { fx: f, fy: f, cx: w as f64 / 2.0, cy: h as f64 / 2.0, ..Intrinsics::default() }
 }
 
 /// Distance along the unit ray `o + t d` to the sphere (centre `c`, radius `r`), if it hits.

@@ -61,8 +61,11 @@ mod tests {
         write_atomic(&path, b"one").expect("write");
         write_atomic(&path, b"two, longer").expect("rewrite");
         assert_eq!(std::fs::read(&path).expect("read"), b"two, longer");
-        let names: Vec<String> =
-            std::fs::read_dir(dir.path()).expect("list").flatten().map(|e| e.file_name().to_string_lossy().into()).collect();
+        let names: Vec<String> = std::fs::read_dir(dir.path())
+            .expect("list")
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into())
+            .collect();
         assert_eq!(names, vec!["state.json".to_owned()]);
         let err = write_atomic(&dir.path().join("missing/dir/file"), b"x").expect_err("no such directory");
         assert!(err.to_string().contains("missing/dir/file"), "{err}");

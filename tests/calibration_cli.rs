@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use scanrig::calibration::file::CalibrationFile;
-use scanrig::rigfile;
 use scanrig::geometry::Vector3;
+use scanrig::rigfile;
 
 fn rig_path() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/calibrate-sim.toml")

@@ -75,6 +75,23 @@ fn kill9_mid_scan_then_resume_equals_an_uninterrupted_scan_for_every_acquisition
         let c = client(&d);
         let body = serde_json::json!({ "method": method });
         let id = c.post_json("/api/v1/scans", &body).expect("start")["id"].as_str().expect("id").to_owned();
+        // The progress names what the method is doing.
+        let expected_stage = match method {
+            "structured-light" => "projecting pattern ",
+            "shadow-carving" => "switching lights",
+            _ => "",
+        };
+        if !expected_stage.is_empty() {
+            let mut seen = String::new();
+            wait_for("a method's own stage in the progress", Duration::from_secs(60), || {
+                seen = c.get_json("/api/v1/status").expect("status")["progress"]["stage"]
+                    .as_str()
+                    .unwrap_or("")
+                    .to_owned();
+                seen.starts_with(expected_stage)
+            });
+            eprintln!("{method}: progress stage {seen:?}");
+        }
         wait_for("three positions on disk", Duration::from_secs(60), || records(&state, &id).len() >= 3);
         d.child.kill().expect("kill -9");
         let _ = d.child.wait();

@@ -7,8 +7,8 @@ use std::sync::mpsc;
 
 use scanrig::acquisition::{position_angle, run_depth_scan, AcquisitionError, CancelToken};
 use scanrig::config::{ConfigError, Method};
-use scanrig::rigfile;
 use scanrig::devices::{build_rig, ErrorKind};
+use scanrig::rigfile;
 
 fn shipped() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/depth-fusion.toml")

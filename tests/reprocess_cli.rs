@@ -94,10 +94,19 @@ fn photo_carving_runs_on_a_silhouette_scan_and_bad_reprocess_requests_are_refuse
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("pos_000_pattern_00.png"), "names the missing frame: {err}");
-    // Not a stored scan.
-    let out = reconstruct(dir.path(), &dir.path().join("y"), &[]);
+    // Not a stored scan: no rig file.
+    let empty = tempfile::tempdir().expect("tempdir");
+    let out = reconstruct(empty.path(), &dir.path().join("y"), &[]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("rig.toml"), "{}", String::from_utf8_lossy(&out.stderr));
+    // A rig file but no views: named.
+    let out = reconstruct(dir.path(), &dir.path().join("y"), &[]);
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("no complete view"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     // A corrupt frame: named.
     std::fs::write(scan.join("frames/pos_003.png"), b"not a png").expect("corrupt");
     let out = reconstruct(&scan, &dir.path().join("z"), &[]);

@@ -5,8 +5,8 @@ use std::path::Path;
 use std::time::Duration;
 
 use scanrig::config::ConfigError;
-use scanrig::rigfile;
 use scanrig::devices::build_rig;
+use scanrig::rigfile;
 
 fn rig(controller: &str, turntable_kind: &str, lights_kind: &str) -> String {
     format!(

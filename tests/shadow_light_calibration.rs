@@ -7,9 +7,9 @@ use std::path::Path;
 
 use scanrig::acquisition::CancelToken;
 use scanrig::config::RigConfig;
-use scanrig::rigfile;
 use scanrig::geometry::{turntable_rotation, Vector3};
 use scanrig::pipeline::light_calibration::{calibrate_point_light, LightFitParams, Sphere, SphereObservation};
+use scanrig::rigfile;
 use scanrig::scan::run_scan;
 use scanrig::sim::{FrameNoise, Lighting, Material, PointLight, Primitive, RayTable, Scene, SimWorld, Solid};
 

@@ -238,7 +238,8 @@ fn killing_the_x_server_mid_scan_fails_the_scan_typed_and_keeps_the_frames() {
     // bit pairs, white and black.
     while out.join(format!("frames/pos_{views:03}.json")).exists() {
         for k in 0..20 {
-            let img = image::open(out.join(format!("frames/pos_{views:03}_pattern_{k:02}.png"))).expect("kept frame decodes");
+            let img =
+                image::open(out.join(format!("frames/pos_{views:03}_pattern_{k:02}.png"))).expect("kept frame decodes");
             assert_eq!(img.width(), 400);
         }
         views += 1;

@@ -18,11 +18,11 @@ use super::turntable::{calibrate_turntable, TurntableOptions, TurntableView};
 use super::zhang::{calibrate_camera, CalibrationOptions, PlanarView};
 use super::{BoardSpec, CalibrationError};
 use crate::config::{CameraConfig, ConfigError, RigConfig, TurntableConfig};
-use crate::rigfile;
 use crate::geometry::{turntable_rotation, Intrinsics};
 use crate::pipeline::light_calibration::{
     calibrate_point_light, LightCalibrationError, LightFitParams, Sphere, SphereObservation,
 };
+use crate::rigfile;
 use crate::sim::chessboard::ChessboardTarget;
 use crate::sim::{FrameNoise, Lighting, Material, PointLight, Primitive, RayTable, Scene, SimWorld, Solid};
 

@@ -37,8 +37,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::geometry::{Intrinsics, Matrix3, Pose, Vector3};
 use crate::atomic::{write_atomic, AtomicWriteError};
+use crate::geometry::{Intrinsics, Matrix3, Pose, Vector3};
 
 /// The file format version this code reads and writes.
 pub const FORMAT_VERSION: u32 = 1;

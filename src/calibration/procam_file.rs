@@ -16,9 +16,9 @@ use super::procam::{
     ProcamViewOptions, ProcamViewStats,
 };
 use super::{BoardSpec, CalibrationError};
+use crate::atomic::{write_atomic, AtomicWriteError};
 use crate::geometry::Intrinsics;
 use crate::geometry::Pose;
-use crate::atomic::{write_atomic, AtomicWriteError};
 use crate::pipeline::structured_light::{load_capture_dir, CaptureError, GrayCodePatterns, PatternError};
 
 /// A projector-camera calibration file.

@@ -34,9 +34,9 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
 
 use super::export::ExportError;
-use crate::atomic::write_atomic;
 use super::mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
 use super::occupancy::Occupancy;
+use crate::atomic::write_atomic;
 use crate::geometry::{turntable_rotation, Aabb, VoxelGrid};
 
 /// Errors of point-cloud operations; each names the offending value.

@@ -23,8 +23,8 @@ use super::flow::Outcome;
 use super::report::{ground_truth, Report, Timings};
 use super::{ScanError, ScanEvent};
 use crate::acquisition::AcquisitionSummary;
-use crate::config::{Method, RigConfig};
 use crate::atomic::{is_atomic_temp, write_atomic};
+use crate::config::{Method, RigConfig};
 use crate::pipeline::export;
 use crate::pipeline::{keep_main_component, reprojection_iou, Occupancy, View};
 

@@ -19,7 +19,6 @@ pub use rng::SplitMix64;
 pub use scene::{Hit, Material, Primitive, Scene, Solid};
 pub use world::{SimWorld, WorldState};
 
-
 /// Names of the preset scenes for `[sim] scene`.
 pub const SCENE_NAMES: &[&str] = &["sphere", "box", "cup", "pit-block", "textured-box"];
 

@@ -6,9 +6,9 @@ use nalgebra::Vector3;
 
 use super::*;
 use crate::config::{CameraConfig, RigConfig};
-use crate::rigfile;
 use crate::devices::Pattern;
 use crate::geometry::{CameraModel, Intrinsics, Pose};
+use crate::rigfile;
 
 fn rig_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("config").join("rigs")

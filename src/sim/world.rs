@@ -64,8 +64,11 @@ impl SimWorld {
     /// Build the world from the rig file: the `[sim]` scene, the `[lights]` geometry and the
     /// `[projector]` calibration.
     pub fn from_config(sim: &SimConfig, rig: &RigConfig) -> Result<SimWorld, SimConfigError> {
-        let scene = Scene::preset(&sim.scene, sim.scale)
-            .map_err(|source| SimConfigError { section: "sim", field: "scene", source })?;
+        let scene = Scene::preset(&sim.scene, sim.scale).map_err(|source| SimConfigError {
+            section: "sim",
+            field: "scene",
+            source,
+        })?;
         let (lights, lasers) = match &rig.lights {
             None => (Vec::new(), Vec::new()),
             Some(l) => (

@@ -7,8 +7,7 @@
 //! when it is closed. The control ids and units are V4L2's; a [`ControlBackend`] reads and writes them
 //! (the V4L2 device, or a map in a test).
 
-
-pub use crate::config::vocab::{ManualControls};
+pub use crate::config::vocab::ManualControls;
 
 /// V4L2 control ids (`linux/v4l2-controls.h`) used by the scan settings.
 pub mod cid {

@@ -14,8 +14,7 @@
 //!   host arrival time moved back by exposure and readout, and frames triggered before the change are
 //!   dropped as stale like free-run ones.
 
-
-pub use crate::config::vocab::{GenicamPixelFormat, TriggerMode, TriggerActivation};
+pub use crate::config::vocab::{GenicamPixelFormat, TriggerActivation, TriggerMode};
 
 impl TriggerActivation {
     /// The GenICam enumeration entry.

@@ -6,7 +6,7 @@
 
 use std::fmt;
 
-pub use crate::config::vocab::{PixelFormat};
+pub use crate::config::vocab::PixelFormat;
 
 impl PixelFormat {
     /// Every format, in the order a driver prefers them when the rig file says `auto`: lossless

@@ -16,7 +16,7 @@
 use std::io::Write as _;
 use std::path::Path;
 
-pub use crate::config::vocab::{FreenectDepthFormat};
+pub use crate::config::vocab::FreenectDepthFormat;
 
 /// `a` of `z = 1 / (a·d + b)`, 1/metres per disparity unit.
 pub const DISPARITY_A: f64 = -0.003_071_101_6;

@@ -106,7 +106,9 @@ impl super::Projector for SimProjector {
             },
         };
         let at = self.visible_at(Instant::now());
-        self.world.set_pattern_at(Some(shown), at).map_err(|e| crate::devices::sim_device_error(&e, "projector", "pattern"))?;
+        self.world
+            .set_pattern_at(Some(shown), at)
+            .map_err(|e| crate::devices::sim_device_error(&e, "projector", "pattern"))?;
         Ok(at)
     }
 
