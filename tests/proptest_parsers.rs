@@ -55,17 +55,17 @@ proptest! {
 
     #[test]
     fn rig_toml_never_panics(text in mutated(shipped("simulated.toml"))) {
-        let _ = scanrig::config::parse(&text, Path::new("rig.toml"));
+        let _ = scanrig::rigfile::parse(&text, Path::new("rig.toml"));
     }
 
     #[test]
     fn serial_rig_toml_never_panics(text in mutated(shipped("sim-serial.toml"))) {
-        let _ = scanrig::config::parse(&text, Path::new("rig.toml"));
+        let _ = scanrig::rigfile::parse(&text, Path::new("rig.toml"));
     }
 
     #[test]
     fn arbitrary_text_as_a_rig_file_never_panics(text in "(\\PC|\n|\\[|\\]|=|\"){0,400}") {
-        let _ = scanrig::config::parse(&text, Path::new("rig.toml"));
+        let _ = scanrig::rigfile::parse(&text, Path::new("rig.toml"));
     }
 
     #[test]
@@ -211,7 +211,7 @@ fn calibration_text() -> String {
 #[test]
 fn the_unmutated_inputs_parse() {
     // The mutations start from valid inputs, so they explore near-valid files, not only noise.
-    scanrig::config::parse(&shipped("simulated.toml"), Path::new("rig.toml")).expect("simulated.toml");
+    scanrig::rigfile::parse(&shipped("simulated.toml"), Path::new("rig.toml")).expect("simulated.toml");
     scanrig::calibration::file::CalibrationFile::parse(&calibration_text(), Path::new("c.toml")).expect("calibration");
     assert_eq!(scanrig::dataset::parse_par(PAR, Path::new("p_par.txt")).expect("par").len(), 2);
     assert_eq!(scanrig::dataset::parse_projections(PROJECTIONS, Path::new("p.txt")).expect("projections").len(), 2);

@@ -216,7 +216,7 @@ fn a_rig_projector_takes_its_pose_from_a_procam_file() {
     let path = dir.path().join("rig.toml");
     let text = toml::to_string(&doc).expect("serialise");
     std::fs::write(&path, &text).expect("write rig");
-    let config = crate::config::load(&path).expect("loads with the procam file");
+    let config = crate::rigfile::load(&path).expect("loads with the procam file");
     let model = config.projector.as_ref().and_then(|p| p.model()).expect("projector model");
     assert_eq!(model.intrinsics, proj);
     // The projector centre is the camera centre moved by the baseline, in the rig frame.
@@ -226,6 +226,6 @@ fn a_rig_projector_takes_its_pose_from_a_procam_file() {
     // A procam file for another projector size is refused, naming the file.
     let wrong = text.replace("width = 1024", "width = 800");
     std::fs::write(&path, wrong).expect("write rig");
-    let e = crate::config::load(&path).expect_err("size mismatch");
+    let e = crate::rigfile::load(&path).expect_err("size mismatch");
     assert!(format!("{e}").contains("projector.procam"), "{e}");
 }
