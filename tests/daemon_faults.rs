@@ -202,12 +202,17 @@ impl Drop for Tmpfs {
 fn a_full_disk_fails_the_scan_cleanly_and_keeps_what_was_written() {
     // SAFETY: getuid has no preconditions.
     if unsafe { libc::getuid() } != 0 {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI must run this test, but mounting a small tmpfs for the store needs root"
+        );
         eprintln!("skipped: mounting a small tmpfs for the store needs root");
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
     let rig = write_small_sim(dir.path(), "small-disk");
     let Some(fs) = Tmpfs::mount(&dir.path().join("state"), "16m") else {
+        assert!(std::env::var_os("CI").is_none(), "CI must run this test, but cannot mount a tmpfs here");
         eprintln!("skipped: cannot mount a tmpfs here");
         return;
     };
@@ -280,6 +285,10 @@ fn fill_completely(dir: &std::path::Path, name: &str) -> std::path::PathBuf {
 fn a_completely_full_disk_keeps_the_status_true_and_resume_works_once_space_is_freed() {
     // SAFETY: getuid has no preconditions.
     if unsafe { libc::getuid() } != 0 {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI must run this test, but mounting a small tmpfs for the store needs root"
+        );
         eprintln!("skipped: mounting a small tmpfs for the store needs root");
         return;
     }
@@ -290,6 +299,7 @@ fn a_completely_full_disk_keeps_the_status_true_and_resume_works_once_space_is_f
     let edits: Vec<(&str, &str)> = edits.iter().map(|(a, b)| (*a, b.as_str())).collect();
     let rig = rig_from(dir.path(), "simulated.toml", &edits);
     let Some(fs) = Tmpfs::mount(&dir.path().join("state"), "16m") else {
+        assert!(std::env::var_os("CI").is_none(), "CI must run this test, but cannot mount a tmpfs here");
         eprintln!("skipped: cannot mount a tmpfs here");
         return;
     };
