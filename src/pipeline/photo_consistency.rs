@@ -5,7 +5,8 @@
 //! A voxel's footprint in a view is the set of pixels whose centres fall inside the bounding rectangle
 //! of its eight projected corners (at least the pixel its centre falls in). A voxel with a corner
 //! behind the camera (camera-frame `z <= 0`) has no footprint in that view. Projection uses the full
-//! camera model (pinhole, skew, two-term radial distortion) in `f32`.
+//! camera model (pinhole, skew, the five-term lens model k1 k2 p1 p2 k3 of
+//! [`crate::geometry::Intrinsics`]) in `f32`.
 //!
 //! # Visibility
 //! An [`ItemBuffer`] holds, per pixel of a view, the nearest (smallest camera depth of the voxel
@@ -244,6 +245,9 @@ pub(crate) struct VoxelCamera {
     skew: f32,
     k1: f32,
     k2: f32,
+    k3: f32,
+    p1: f32,
+    p2: f32,
     pub(crate) width: usize,
     pub(crate) height: usize,
     /// Camera centre, grid frame, metres.
@@ -279,6 +283,9 @@ impl VoxelCamera {
             skew: i.skew as f32,
             k1: i.k1 as f32,
             k2: i.k2 as f32,
+            k3: i.k3 as f32,
+            p1: i.p1 as f32,
+            p2: i.p2 as f32,
             width: camera.width as usize,
             height: camera.height as usize,
             centre: [c.x as f32, c.y as f32, c.z as f32],
@@ -299,8 +306,10 @@ impl VoxelCamera {
         let c = [0, 1, 2].map(|a| self.r[a][0] * p[0] + self.r[a][1] * p[1] + self.r[a][2] * p[2] + self.t[a]);
         let (x, y) = (c[0] / c[2], c[1] / c[2]);
         let r2 = x * x + y * y;
-        let f = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
-        let (xd, yd) = (x * f, y * f);
+        // As `Intrinsics::distort`: radial k1 k2 k3, tangential p1 p2.
+        let f = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
+        let xd = x * f + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
+        let yd = y * f + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
         (c[2], self.fx * xd + self.skew * yd + self.cx, self.fy * yd + self.cy)
     }
 
@@ -315,7 +324,7 @@ impl VoxelCamera {
     /// that cannot be bounded this way: a corner is behind the camera, or the lens distorts (a
     /// distorted box edge may bulge past its corners' bounding rectangle).
     pub(crate) fn box_pixels(&self, lo: [u32; 3], hi: [u32; 3]) -> Option<[usize; 4]> {
-        if self.k1 != 0.0 || self.k2 != 0.0 {
+        if [self.k1, self.k2, self.k3, self.p1, self.p2].iter().any(|&k| k != 0.0) {
             return None;
         }
         let (mut u0, mut u1, mut v0, mut v1) = (f32::INFINITY, f32::NEG_INFINITY, f32::INFINITY, f32::NEG_INFINITY);
@@ -681,6 +690,45 @@ mod tests {
 
     fn s(count: u32, mean: [f32; 3], _cos: f32) -> ViewSample {
         ViewSample { count, mean, centre: None }
+    }
+
+    #[test]
+    fn voxel_camera_projects_like_the_camera_model_with_every_lens_term() {
+        use crate::geometry::{Aabb, Intrinsics, Pose};
+        use nalgebra::Vector3;
+        let camera = CameraModel {
+            intrinsics: Intrinsics {
+                k1: -0.21,
+                k2: 0.09,
+                p1: 0.004,
+                p2: -0.003,
+                k3: -0.02,
+                skew: 0.5,
+                ..Intrinsics::new(800.0, 790.0, 321.0, 238.0)
+            },
+            pose: Pose::look_at(Vector3::new(0.05, -0.3, 0.15), Vector3::zeros(), Vector3::z()),
+            width: 640,
+            height: 480,
+        };
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.05; 3], max: [0.05; 3] }, 16);
+        let vc = VoxelCamera::new(&camera, &grid);
+        let mut checked = 0;
+        for v in [[0, 0, 0], [15, 15, 15], [0, 15, 7], [15, 0, 3], [8, 8, 8]] {
+            let p = vc.point(v, [0.0; 3]);
+            let (_, u, w) = vc.project(p);
+            let want = camera
+                .project(&Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])))
+                .expect("in front of the camera");
+            assert!((f64::from(u) - want.x).abs() < 1e-2 && (f64::from(w) - want.y).abs() < 1e-2, "{u},{w} vs {want}");
+            checked += 1;
+        }
+        assert_eq!(checked, 5);
+        // A tangential term alone still makes the box bound unsafe.
+        let tangential = CameraModel {
+            intrinsics: Intrinsics { p1: 0.01, ..Intrinsics::new(800.0, 800.0, 320.0, 240.0) },
+            ..camera
+        };
+        assert!(VoxelCamera::new(&tangential, &grid).box_pixels([0; 3], [16; 3]).is_none());
     }
 
     #[test]

@@ -58,6 +58,18 @@ pub fn rig_from(dir: &Path, name: &str, edits: &[(&str, &str)]) -> PathBuf {
     path
 }
 
+/// Edits for [`rig_from`] that halve the shipped simulated rig's camera (320x240 pixels, the same
+/// field of view): for tests that compare two runs of a job with each other rather than with the
+/// truth, where the frames' size only costs time.
+pub const HALF_SIZE_CAMERA: [(&str, &str); 6] = [
+    ("width = 640", "width = 320"),
+    ("height = 480", "height = 240"),
+    ("fx = 1600.0", "fx = 800.0"),
+    ("fy = 1600.0", "fy = 800.0"),
+    ("cx = 320.0", "cx = 160.0"),
+    ("cy = 240.0", "cy = 120.0"),
+];
+
 /// Start `scanrigd` on 127.0.0.1 with a free port; waits (bounded) for its "listening" line.
 pub fn spawn(rig: &Path, state: &Path) -> Daemon {
     spawn_in(rig, state, state)
