@@ -455,8 +455,6 @@ mod tests {
         assert!(matches!(store.remove(&a.id), Err(StoreError::NotFound(_))));
     }
 
-    use super::*;
-
     fn config() -> RigConfig {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/simulated.toml");
         crate::rigfile::load(&path).expect("shipped rig")
