@@ -436,11 +436,11 @@ enum PatternArg {
 #[derive(clap::Args, Debug)]
 struct DaemonArgs {
     /// Daemon address, host:port.
-    #[arg(long, default_value = "127.0.0.1:8470")]
+    #[arg(long, default_value = "127.0.0.1:8470", global = true)]
     daemon: String,
     /// File holding the bearer token, readable by its owner only, when the daemon needs one (else
     /// the SCANRIG_TOKEN environment variable). There is no `--token`: `ps` would show it.
-    #[arg(long)]
+    #[arg(long, global = true)]
     token_file: Option<PathBuf>,
 }
 

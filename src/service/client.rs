@@ -199,6 +199,21 @@ impl Client {
         Ok(n)
     }
 
+    /// GET `path` and return the status, the headers and a reader of the (de-chunked) body as it
+    /// arrives, for streams (`camera.mjpg`, `events`).
+    pub fn open_stream(
+        &self,
+        path: &str,
+    ) -> Result<(u16, Vec<(String, String)>, Box<dyn BufRead + Send>), ClientError> {
+        let stream = self.send("GET", path, None, "*/*")?;
+        let mut reader = BufReader::new(stream);
+        let (status, headers) = read_head(&mut reader).map_err(|e| e.with_addr(self.addr))?;
+        let chunked = headers.iter().any(|(k, v)| k == "transfer-encoding" && v.contains("chunked"));
+        let body: Box<dyn BufRead + Send> =
+            if chunked { Box::new(BufReader::new(ChunkedReader::new(reader))) } else { Box::new(reader) };
+        Ok((status, headers, body))
+    }
+
     /// GET a JSON document.
     pub fn get_json(&self, path: &str) -> Result<serde_json::Value, ClientError> {
         self.request("GET", path, None)?.json()
@@ -349,6 +364,57 @@ pub fn stored_zip_entries(zip: &[u8]) -> Result<Vec<(String, &[u8])>, String> {
         at += 46 + name_len + extra + comment;
     }
     Ok(out)
+}
+
+/// One part of a `multipart/x-mixed-replace` stream (as `camera.mjpg` sends it).
+#[derive(Debug, Clone)]
+pub struct MultipartPart {
+    /// The part's headers, names lower-cased.
+    pub headers: Vec<(String, String)>,
+    /// Its body (`Content-Length` bytes).
+    pub body: Vec<u8>,
+}
+
+/// Read the next part of a multipart stream with boundary `boundary` (without the leading `--`):
+/// skips to the boundary line, reads the part's headers and its `Content-Length` bytes. `None` at
+/// the end of the stream.
+pub fn read_multipart_part(r: &mut dyn BufRead, boundary: &str) -> std::io::Result<Option<MultipartPart>> {
+    let invalid = |m: &str| std::io::Error::new(std::io::ErrorKind::InvalidData, m.to_owned());
+    let marker = format!("--{boundary}");
+    let mut line = String::new();
+    loop {
+        line.clear();
+        if r.read_line(&mut line)? == 0 {
+            return Ok(None);
+        }
+        if line.trim_end() == marker {
+            break;
+        }
+    }
+    let mut headers = Vec::new();
+    loop {
+        line.clear();
+        if r.read_line(&mut line)? == 0 {
+            return Err(invalid("part headers cut short"));
+        }
+        let l = line.trim_end_matches(['\r', '\n']);
+        if l.is_empty() {
+            break;
+        }
+        let (k, v) = l.split_once(':').ok_or_else(|| invalid("part header without a colon"))?;
+        headers.push((k.trim().to_ascii_lowercase(), v.trim().to_owned()));
+        if headers.len() > 50 {
+            return Err(invalid("too many part headers"));
+        }
+    }
+    let len = headers
+        .iter()
+        .find(|(k, _)| k == "content-length")
+        .and_then(|(_, v)| v.parse::<usize>().ok())
+        .ok_or_else(|| invalid("part without a Content-Length"))?;
+    let mut body = vec![0; len];
+    r.read_exact(&mut body)?;
+    Ok(Some(MultipartPart { headers, body }))
 }
 
 /// Why fetching results failed.
