@@ -103,15 +103,16 @@ pub async fn run(
     let (rig, rig_thread) = rig::RigHandle::spawn(config.clone(), metrics.clone()).map_err(ServiceError::Thread)?;
     let jobs = jobs::Jobs::new(Arc::new(store), rig.clone(), metrics.clone());
     let token = CancellationToken::new();
+    let camera = camera::LiveCamera::new(rig.clone());
     let state = api::AppState {
         config: Arc::new(RwLock::new(config)),
-        rig: rig.clone(),
+        rig,
         jobs: jobs.clone(),
         metrics,
         token: opts.token.as_deref().map(Arc::from),
         shutdown: token.clone(),
         started: Instant::now(),
-        camera: camera::LiveCamera::new(rig.clone()),
+        camera,
     };
     let listener = tokio::net::TcpListener::bind(opts.listen)
         .await
