@@ -153,8 +153,14 @@ fn two_hundred_status_clients_during_a_scan() {
 }
 
 /// Count the parts of one `camera.mjpg` viewer until `stop`; a stream that ends or fails before
-/// `stop` is an error. Returns (parts, errors).
-fn mjpeg_viewer(addr: &str, stop: &AtomicBool) -> (u64, u64) {
+/// `stop` is an error. Returns (parts, errors) and the frame sequences received before `live_until`.
+fn mjpeg_viewer(addr: &str, stop: &AtomicBool, live_until: Instant) -> (u64, u64, Vec<u64>) {
+    let mut seqs = Vec::new();
+    let (parts, errors) = mjpeg_parts(addr, stop, live_until, &mut seqs);
+    (parts, errors, seqs)
+}
+
+fn mjpeg_parts(addr: &str, stop: &AtomicBool, live_until: Instant, seqs: &mut Vec<u64>) -> (u64, u64) {
     let c = Client::new(addr, None).expect("client").with_timeout(Duration::from_secs(10));
     let (status, _, mut body) = match c.open_stream("/api/v1/camera.mjpg?fps=5") {
         Ok(s) => s,
@@ -169,7 +175,13 @@ fn mjpeg_viewer(addr: &str, stop: &AtomicBool) -> (u64, u64) {
     let mut parts = 0;
     while !stop.load(Ordering::SeqCst) {
         match scanrig::service::client::read_multipart_part(&mut *body, "frame") {
-            Ok(Some(p)) if p.body.starts_with(&[0xff, 0xd8]) => parts += 1,
+            Ok(Some(p)) if p.body.starts_with(&[0xff, 0xd8]) => {
+                parts += 1;
+                if Instant::now() < live_until {
+                    let seq = p.headers.iter().find(|(k, _)| k == "x-frame-sequence").and_then(|(_, v)| v.parse::<u64>().ok());
+                    seqs.extend(seq);
+                }
+            }
             Ok(Some(_)) => return (parts, 1),
             Ok(None) => return (parts, u64::from(!stop.load(Ordering::SeqCst))),
             Err(e) => {
@@ -240,18 +252,20 @@ fn fifty_mjpeg_viewers_and_two_hundred_sse_clients_during_a_scan() {
     eprintln!("scan without streams: {:.2} s", quiet.as_secs_f64());
 
     let stop = Arc::new(AtomicBool::new(false));
+    // 5 s of live view before the scan: the viewers share the captures.
+    let live = Duration::from_secs(5);
+    let live_until = Instant::now() + live;
     let mut mjpeg = Vec::new();
     for _ in 0..viewers {
         let (stop, addr) = (stop.clone(), d.addr.clone());
-        mjpeg.push(std::thread::spawn(move || mjpeg_viewer(&addr, &stop)));
+        mjpeg.push(std::thread::spawn(move || mjpeg_viewer(&addr, &stop, live_until)));
     }
     let mut events = Vec::new();
     for _ in 0..sse {
         let (stop, addr) = (stop.clone(), d.addr.clone());
         events.push(std::thread::spawn(move || sse_client(&addr, &stop)));
     }
-    // Every viewer has its first live frame before the scan starts.
-    std::thread::sleep(Duration::from_secs(2));
+    std::thread::sleep(live_until.saturating_duration_since(Instant::now()));
     let load_start = Instant::now();
     let (id, loaded) = timed_scan(&c);
     while load_start.elapsed() < Duration::from_secs(seconds) {
@@ -259,11 +273,21 @@ fn fifty_mjpeg_viewers_and_two_hundred_sse_clients_during_a_scan() {
     }
     stop.store(true, Ordering::SeqCst);
     let (mut parts, mut mjpeg_errors) = (0, 0);
+    let mut live_parts = 0;
+    let mut distinct = std::collections::BTreeSet::new();
     for w in mjpeg {
-        let (p, e) = w.join().expect("viewer thread");
+        let (p, e, seqs) = w.join().expect("viewer thread");
         parts += p;
         mjpeg_errors += e;
+        live_parts += seqs.len();
+        distinct.extend(seqs);
     }
+    eprintln!(
+        "live view before the scan ({:.0} s, {viewers} viewers at 5 fps): {live_parts} parts of {} distinct captures ({:.1} captures/s)",
+        live.as_secs_f64(),
+        distinct.len(),
+        distinct.len() as f64 / live.as_secs_f64()
+    );
     let (mut got, mut sse_errors) = (0, 0);
     for w in events {
         let (n, e) = w.join().expect("sse thread");
@@ -289,6 +313,7 @@ fn fifty_mjpeg_viewers_and_two_hundred_sse_clients_during_a_scan() {
     );
     assert_eq!((mjpeg_errors, sse_errors), (0, 0));
     assert!(parts >= viewers as u64, "every viewer got frames");
+    assert!(live_parts > distinct.len(), "the viewers shared captures");
     assert!(got >= sse as u64, "every SSE client got events");
     assert!(loaded.as_secs_f64() <= quiet.as_secs_f64() * 1.25, "the scan slowed down under the streams");
     assert!(d.log().lines().all(|l| !l.contains("ERROR")), "{}", d.log());

@@ -259,9 +259,9 @@ fn bounds(points: &[[f32; 3]]) -> ([f32; 3], [f32; 3]) {
     let mut lo = [f32::INFINITY; 3];
     let mut hi = [f32::NEG_INFINITY; 3];
     for p in points {
-        for a in 0..3 {
-            lo[a] = lo[a].min(p[a]);
-            hi[a] = hi[a].max(p[a]);
+        for ((l, h), v) in lo.iter_mut().zip(hi.iter_mut()).zip(p) {
+            *l = l.min(*v);
+            *h = h.max(*v);
         }
     }
     (lo, hi)
@@ -283,12 +283,12 @@ fn cluster(mesh: &TriangleMesh, lo: [f32; 3], cell: f32) -> TriangleMesh {
                 (sums.len() - 1) as u32
             });
             let s = &mut sums[k as usize];
-            for a in 0..3 {
-                s.0[a] += f64::from(p[a]);
+            for (sum, v) in s.0.iter_mut().zip(p) {
+                *sum += f64::from(*v);
             }
             if let Some(c) = colors {
-                for a in 0..3 {
-                    s.1[a] += u32::from(c[n][a]);
+                for (sum, v) in s.1.iter_mut().zip(c[n]) {
+                    *sum += u32::from(v);
                 }
             }
             s.2 += 1;
