@@ -50,6 +50,9 @@ fn decode(p: &MultipartPart) -> (u64, f64) {
     (seq, mean)
 }
 
+/// Live parts as received: when, sequence, mean grey level.
+type Parts = Arc<Mutex<Vec<(Instant, u64, f64)>>>;
+
 /// `(status, error code, error message)` of a request.
 fn answer(c: &Client, method: &str, path: &str, body: Option<&str>) -> (u16, String, String) {
     let r = c.raw(method, path, body.map(str::as_bytes)).expect("request");
@@ -103,7 +106,7 @@ fn camera_control_scans_archive_and_delete() {
     assert_eq!(status, 200);
     let ctype = headers.iter().find(|(k, _)| k == "content-type").map(|(_, v)| v.clone()).unwrap_or_default();
     assert_eq!(ctype, "multipart/x-mixed-replace; boundary=frame");
-    let parts: Arc<Mutex<Vec<(Instant, u64, f64)>>> = Arc::default();
+    let parts: Parts = Arc::default();
     let sink = parts.clone();
     std::thread::spawn(move || {
         while let Ok(Some(p)) = read_multipart_part(&mut *body, "frame") {
@@ -111,7 +114,7 @@ fn camera_control_scans_archive_and_delete() {
             sink.lock().expect("lock").push((Instant::now(), seq, mean));
         }
     });
-    let count = |parts: &Arc<Mutex<Vec<(Instant, u64, f64)>>>| parts.lock().expect("lock").len();
+    let count = |parts: &Parts| parts.lock().expect("lock").len();
     wait_for("two live frames", Duration::from_secs(15), || count(&parts) >= 2);
     let dark = parts.lock().expect("lock").last().map(|p| p.2).expect("frame");
 

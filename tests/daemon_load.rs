@@ -178,7 +178,11 @@ fn mjpeg_parts(addr: &str, stop: &AtomicBool, live_until: Instant, seqs: &mut Ve
             Ok(Some(p)) if p.body.starts_with(&[0xff, 0xd8]) => {
                 parts += 1;
                 if Instant::now() < live_until {
-                    let seq = p.headers.iter().find(|(k, _)| k == "x-frame-sequence").and_then(|(_, v)| v.parse::<u64>().ok());
+                    let seq = p
+                        .headers
+                        .iter()
+                        .find(|(k, _)| k == "x-frame-sequence")
+                        .and_then(|(_, v)| v.parse::<u64>().ok());
                     seqs.extend(seq);
                 }
             }

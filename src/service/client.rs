@@ -69,6 +69,9 @@ impl Response {
     }
 }
 
+/// An open streamed response: status, headers (names lower-cased) and a reader of the body.
+pub type OpenStream = (u16, Vec<(String, String)>, Box<dyn BufRead + Send>);
+
 /// A client for one daemon.
 #[derive(Debug, Clone)]
 pub struct Client {
@@ -201,10 +204,7 @@ impl Client {
 
     /// GET `path` and return the status, the headers and a reader of the (de-chunked) body as it
     /// arrives, for streams (`camera.mjpg`, `events`).
-    pub fn open_stream(
-        &self,
-        path: &str,
-    ) -> Result<(u16, Vec<(String, String)>, Box<dyn BufRead + Send>), ClientError> {
+    pub fn open_stream(&self, path: &str) -> Result<OpenStream, ClientError> {
         let stream = self.send("GET", path, None, "*/*")?;
         let mut reader = BufReader::new(stream);
         let (status, headers) = read_head(&mut reader).map_err(|e| e.with_addr(self.addr))?;
