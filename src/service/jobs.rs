@@ -164,6 +164,8 @@ struct Active {
     pause: Arc<AtomicBool>,
     /// A scan on the rig (not a reprocess): it owns the hardware.
     hardware: bool,
+    /// The stored scan a reprocess reads its views from.
+    reads: Option<String>,
 }
 
 /// The scan jobs of one daemon.
@@ -231,6 +233,9 @@ impl Jobs {
         let runs = active.as_ref().is_some_and(|a| a.id == id);
         if runs || meta.status == ScanStatus::Running {
             return Err(JobError::WrongState { id: id.to_owned(), status: ScanStatus::Running, action: "delete" });
+        }
+        if let Some(a) = active.as_ref().filter(|a| a.reads.as_deref() == Some(id)) {
+            return Err(JobError::Busy(a.id.clone()));
         }
         self.store.remove(id).map_err(JobError::Store)?;
         tracing::info!(scan = id, "scan deleted");
@@ -394,7 +399,8 @@ impl Jobs {
         let cancel = CancelToken::new();
         let pause = Arc::new(AtomicBool::new(false));
         let hardware = matches!(work, Work::Scan { .. });
-        *active = Some(Active { id: meta.id.clone(), cancel: cancel.clone(), pause: pause.clone(), hardware });
+        let reads = meta.reprocess_of.clone();
+        *active = Some(Active { id: meta.id.clone(), cancel: cancel.clone(), pause: pause.clone(), hardware, reads });
         self.metrics.scans_started.fetch_add(1, Ordering::Relaxed);
         let (config, what) = match &work {
             Work::Scan { config, resume: true } => (config, "resuming"),
