@@ -388,6 +388,12 @@ fn cli_scans_status_control_fetch_frames_and_delete() {
     let err = fails(&cli(a, &["control", "projector", "--colour", "red"]));
     assert!(err.contains("--colour red"), "{err}");
 
+    let out = ok(&cli(a, &["reconnect", "camera"]));
+    assert!(out.contains("reconnecting camera") && out.contains("camera"), "{out}");
+    connected(&c);
+    let err = fails(&cli(a, &["reconnect", "toaster"]));
+    assert!(err.contains("no device `toaster`"), "{err}");
+
     let out = ok(&cli(a, &["start", "--positions", "4", "--watch"]));
     let id = out.lines().next().and_then(|l| l.strip_prefix("started ")).expect("started line").to_owned();
     assert!(out.contains(&format!("{id} complete")), "{out}");
