@@ -57,7 +57,8 @@ fn cli_status_start_watch_pause_resume_cancel_fetch() {
     let limit = Duration::from_secs(30);
 
     // status: the daemon's JSON status.
-    let status: serde_json::Value = serde_json::from_str(&ok(&cli(&d.addr, &["status"], limit))).expect("status json");
+    let status: serde_json::Value =
+        serde_json::from_str(&ok(&cli(&d.addr, &["status", "--json"], limit))).expect("status json");
     assert_eq!(status["rig"], "simulated");
     assert_eq!(status["defaults"]["positions"], 8);
 

@@ -316,7 +316,9 @@ fn after_kill_9_partial_writes_are_removed_a_paused_scan_stays_paused_and_a_runn
     let scans = dir.path().join("scans");
     let crashed = "scan-1-crashed";
     std::fs::create_dir_all(scans.join(crashed).join("frames")).expect("mkdir");
-    let mut meta = scan_meta(&c, &id);
+    // The stored meta.json of the paused scan (the served entry adds created, report, outputs).
+    let mut meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(scans.join(&id).join("meta.json")).expect("meta")).expect("json");
     meta["id"] = crashed.into();
     meta["status"] = "running".into();
     std::fs::write(scans.join(crashed).join("meta.json"), meta.to_string()).expect("meta");

@@ -259,7 +259,42 @@ enum Command {
         rig: PathBuf,
     },
     /// Daemon: rig, device and scan status.
-    Status(DaemonArgs),
+    Status {
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        /// The daemon's JSON as it is.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Daemon: the stored scans (id, date, method, status, figures).
+    Scans {
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        /// The daemon's JSON as it is.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Daemon: delete a scan (its frames and results) for good.
+    Delete {
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        /// Scan id.
+        id: String,
+    },
+    /// Daemon: close a device (with the rest of the rig) and open it again.
+    Reconnect {
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        /// Device name as `scanrig status` lists it (turntable, camera, lights, projector...).
+        name: String,
+    },
+    /// Daemon: manual control of the rig between scans (refused while a scan runs).
+    Control {
+        #[command(flatten)]
+        daemon: DaemonArgs,
+        #[command(subcommand)]
+        what: ControlArgs,
+    },
     /// Daemon: start a scan (defaults from the daemon's rig file).
     Start {
         #[command(flatten)]
@@ -333,18 +368,79 @@ enum Command {
         /// Output directory.
         #[arg(long)]
         out: PathBuf,
+        /// Also the frames: the whole scan directory (frames/, rig.toml...), unpacked into --out.
+        #[arg(long)]
+        frames: bool,
+        /// Also keep the whole scan directory as one zip, --out/ID.zip.
+        #[arg(long)]
+        archive: bool,
     },
+}
+
+/// `scanrig control` commands.
+#[derive(Subcommand, Debug)]
+enum ControlArgs {
+    /// Show the control state (table angle, lights, lasers, projector).
+    Show,
+    /// Turn the table by DEGREES from where it is (negative: the other way).
+    Turn {
+        /// Degrees.
+        #[arg(allow_hyphen_values = true)]
+        degrees: f64,
+    },
+    /// Home the table (its end stop, or back to 0 degrees without one).
+    Home,
+    /// Switch white light INDEX on or off.
+    Light {
+        /// Light index, 0-based.
+        index: usize,
+        /// `on` or `off`.
+        state: OnOff,
+    },
+    /// Switch line laser INDEX on or off.
+    Laser {
+        /// Laser index, 0-based.
+        index: usize,
+        /// `on` or `off`.
+        state: OnOff,
+    },
+    /// Show a test pattern (checker, gray, white, black), a colour or nothing on the projector.
+    Projector {
+        /// A test pattern.
+        #[arg(long, value_enum, conflicts_with_all = ["colour", "blank"])]
+        pattern: Option<PatternArg>,
+        /// A solid colour R,G,B (0-255 each).
+        #[arg(long, conflicts_with = "blank")]
+        colour: Option<String>,
+        /// Blank the projector.
+        #[arg(long)]
+        blank: bool,
+    },
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum OnOff {
+    On,
+    Off,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+enum PatternArg {
+    Checker,
+    Gray,
+    White,
+    Black,
 }
 
 /// Where the daemon is.
 #[derive(clap::Args, Debug)]
 struct DaemonArgs {
     /// Daemon address, host:port.
-    #[arg(long, default_value = "127.0.0.1:8470")]
+    #[arg(long, default_value = "127.0.0.1:8470", global = true)]
     daemon: String,
     /// File holding the bearer token, readable by its owner only, when the daemon needs one (else
     /// the SCANRIG_TOKEN environment variable). There is no `--token`: `ps` would show it.
-    #[arg(long)]
+    #[arg(long, global = true)]
     token_file: Option<PathBuf>,
 }
 
@@ -555,11 +651,36 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Calibrate { what: CalibrateCommand::Projector(args) } => calibrate_projector(args),
         Command::Triangulate(args) => triangulate_capture(args),
         Command::LaserView(args) => laser_view(args),
-        Command::Status(d) => {
-            let v = d.client()?.get_json("/api/v1/status")?;
-            println!("{}", serde_json::to_string_pretty(&v)?);
+        Command::Status { daemon, json } => {
+            let v = daemon.client()?.get_json("/api/v1/status")?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&v)?);
+            } else {
+                print!("{}", console_text::status(&v));
+            }
             Ok(())
         }
+        Command::Scans { daemon, json } => {
+            let v = daemon.client()?.get_json("/api/v1/scans")?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&v)?);
+            } else {
+                print!("{}", console_text::scans_table(&v));
+            }
+            Ok(())
+        }
+        Command::Delete { daemon, id } => {
+            daemon.client()?.delete(&format!("/api/v1/scans/{id}"))?;
+            println!("deleted {id}");
+            Ok(())
+        }
+        Command::Reconnect { daemon, name } => {
+            let v = daemon.client()?.post_json(&format!("/api/v1/devices/{name}/reconnect"), &serde_json::json!({}))?;
+            println!("reconnecting {name}");
+            print!("{}", console_text::devices(&v["devices"]));
+            Ok(())
+        }
+        Command::Control { daemon, what } => control(&daemon, what),
         Command::Start { daemon, method, positions, resolution, lights, watch } => {
             let c = daemon.client()?;
             let mut body = serde_json::json!({});
@@ -622,8 +743,21 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Pause { daemon, id } => scan_action(&daemon, &id, "pause"),
         Command::Resume { daemon, id } => scan_action(&daemon, &id, "resume"),
         Command::Cancel { daemon, id } => scan_action(&daemon, &id, "cancel"),
-        Command::Fetch { daemon, id, out } => {
-            let files = client::fetch_results(&daemon.client()?, &id, &out)?;
+        Command::Fetch { daemon, id, out, frames, archive } => {
+            let c = daemon.client()?;
+            if frames || archive {
+                std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
+                let zip = out.join(format!("{id}.zip"));
+                let files = client::fetch_archive(&c, &id, &zip, frames.then_some(out.as_path()))?;
+                println!("{} files from {id} in {}", files.len(), out.display());
+                if archive {
+                    println!("{}", zip.display());
+                } else {
+                    std::fs::remove_file(&zip).with_context(|| format!("cannot remove {}", zip.display()))?;
+                }
+                return Ok(());
+            }
+            let files = client::fetch_results(&c, &id, &out)?;
             for f in files {
                 println!("{}", out.join(f).display());
             }
@@ -664,6 +798,183 @@ fn print_summary(report: &scan::Report) {
     if let Some(gt) = &report.ground_truth {
         let chamfer = gt.chamfer_rel.map_or(String::new(), |c| format!(", Chamfer {:.4} of the diagonal", c));
         println!("ground truth ({}): IoU {:.4}, containment {:.4}{chamfer}", gt.scene, gt.iou, gt.containment);
+    }
+}
+
+/// `scanrig control ...`: one manual control request, then the state it left.
+fn control(d: &DaemonArgs, what: ControlArgs) -> anyhow::Result<()> {
+    let c = d.client()?;
+    let on = |s: OnOff| s == OnOff::On;
+    let state = match what {
+        ControlArgs::Show => c.get_json("/api/v1/control")?,
+        ControlArgs::Turn { degrees } => {
+            c.post_json("/api/v1/control/turntable", &serde_json::json!({ "turn_deg": degrees }))?;
+            c.get_json("/api/v1/control")?
+        }
+        ControlArgs::Home => {
+            c.post_json("/api/v1/control/turntable", &serde_json::json!({ "home": true }))?;
+            c.get_json("/api/v1/control")?
+        }
+        ControlArgs::Light { index, state } => {
+            c.post_json("/api/v1/control/light", &serde_json::json!({ "index": index, "on": on(state) }))?
+        }
+        ControlArgs::Laser { index, state } => {
+            c.post_json("/api/v1/control/laser", &serde_json::json!({ "index": index, "on": on(state) }))?
+        }
+        ControlArgs::Projector { pattern, colour, blank } => {
+            let body = match (pattern, colour, blank) {
+                (Some(p), _, _) => {
+                    let name = match p {
+                        PatternArg::Checker => "checker",
+                        PatternArg::Gray => "gray",
+                        PatternArg::White => "white",
+                        PatternArg::Black => "black",
+                    };
+                    serde_json::json!({ "pattern": name })
+                }
+                (None, Some(c), _) => {
+                    let rgb: Vec<u8> =
+                        c.split(',').map(|t| t.trim().parse::<u8>()).collect::<Result<_, _>>().map_err(|_| {
+                            anyhow::anyhow!("--colour {c}: expected R,G,B with each 0 to 255, e.g. 255,128,0")
+                        })?;
+                    if rgb.len() != 3 {
+                        anyhow::bail!("--colour {c}: expected three values R,G,B, got {}", rgb.len());
+                    }
+                    serde_json::json!({ "colour": rgb })
+                }
+                (None, None, true) => serde_json::json!({ "blank": true }),
+                (None, None, false) => anyhow::bail!("give --pattern NAME, --colour R,G,B or --blank"),
+            };
+            c.post_json("/api/v1/control/projector", &body)?
+        }
+    };
+    print!("{}", console_text::control(&state));
+    Ok(())
+}
+
+/// Plain-text views of the daemon's JSON for a terminal.
+mod console_text {
+    use serde_json::Value;
+    use std::fmt::Write;
+
+    fn num(v: &Value, digits: usize) -> String {
+        v.as_f64().map_or("-".into(), |x| format!("{x:.digits$}"))
+    }
+
+    /// `scanrig status`.
+    pub fn status(v: &Value) -> String {
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "rig {} (scanrig {}), up {:.0} s",
+            v["rig"].as_str().unwrap_or("?"),
+            v["version"].as_str().unwrap_or("?"),
+            v["uptime_s"].as_f64().unwrap_or(0.0)
+        );
+        let d = &v["defaults"];
+        let _ = writeln!(
+            s,
+            "defaults: {}, {} positions, resolution {}",
+            d["method"].as_str().unwrap_or("?"),
+            d["positions"],
+            d["resolution"]
+        );
+        s.push_str(&devices(&v["devices"]));
+        let p = &v["progress"];
+        match (v["running"].as_str(), p["scan_id"].as_str()) {
+            (Some(id), _) => {
+                let left = p["remaining_s"].as_f64().map_or(String::new(), |r| format!(", about {r:.0} s left"));
+                let _ = writeln!(
+                    s,
+                    "scan {id} running: {} ({}/{} views, {:.0} s in{left})",
+                    p["message"].as_str().unwrap_or(""),
+                    p["step"],
+                    p["total"],
+                    p["elapsed_s"].as_f64().unwrap_or(0.0)
+                );
+            }
+            (None, Some(id)) => {
+                let _ = writeln!(s, "no scan running; the last, {id}, is {}", p["status"].as_str().unwrap_or("?"));
+            }
+            (None, None) => s.push_str("no scan running\n"),
+        }
+        s
+    }
+
+    /// The device list.
+    pub fn devices(list: &Value) -> String {
+        let mut s = String::new();
+        for d in list.as_array().map(Vec::as_slice).unwrap_or(&[]) {
+            let err = d["last_error"].as_str().map_or(String::new(), |e| format!(": {e}"));
+            let _ = writeln!(
+                s,
+                "  {:<13} {:<7} {:<13} {} reconnects{err}",
+                d["name"].as_str().unwrap_or("?"),
+                d["kind"].as_str().unwrap_or("?"),
+                d["state"].as_str().unwrap_or("?"),
+                d["reconnects"]
+            );
+        }
+        s
+    }
+
+    /// `scanrig scans`: one line per scan.
+    pub fn scans_table(v: &Value) -> String {
+        let mut s = format!(
+            "{:<24} {:<20} {:<20} {:<11} {:>5} {:>9} {:>10} {:>7}\n",
+            "ID", "CREATED (UTC)", "METHOD", "STATUS", "VIEWS", "TRIANGLES", "VOLUME cm3", "IOU"
+        );
+        let scans = v["scans"].as_array().map(Vec::as_slice).unwrap_or(&[]);
+        for e in scans {
+            let r = &e["report"];
+            let created = e["created"].as_str().unwrap_or("?").replace('T', " ").trim_end_matches('Z').to_owned();
+            let volume = r["volume_m3"].as_f64().map_or("-".into(), |m3| format!("{:.2}", m3 * 1e6));
+            let _ = writeln!(
+                s,
+                "{:<24} {:<20} {:<20} {:<11} {:>5} {:>9} {:>10} {:>7}",
+                e["id"].as_str().unwrap_or("?"),
+                created,
+                e["method"].as_str().unwrap_or("?"),
+                e["status"].as_str().unwrap_or("?"),
+                r["views"].as_u64().map_or("-".into(), |n| n.to_string()),
+                r["mesh_triangles"].as_u64().map_or("-".into(), |n| n.to_string()),
+                volume,
+                num(&r["iou"], 4),
+            );
+            if let Some(err) = e["error"].as_str() {
+                let _ = writeln!(s, "  failed: {err}");
+            }
+        }
+        if scans.is_empty() {
+            s.push_str("(no scans)\n");
+        }
+        s
+    }
+
+    /// `scanrig control`.
+    pub fn control(v: &Value) -> String {
+        let switches = |a: &Value| {
+            let list: Vec<String> = a
+                .as_array()
+                .map(Vec::as_slice)
+                .unwrap_or(&[])
+                .iter()
+                .enumerate()
+                .map(|(i, on)| format!("{i} {}", if on.as_bool() == Some(true) { "on" } else { "off" }))
+                .collect();
+            if list.is_empty() {
+                "none".to_owned()
+            } else {
+                list.join(", ")
+            }
+        };
+        format!(
+            "turntable at {} degrees\nlights: {}\nlasers: {}\nprojector: {}\n",
+            num(&v["angle_deg"], 2),
+            switches(&v["lights"]),
+            switches(&v["lasers"]),
+            v["projector"].as_str().unwrap_or("none")
+        )
     }
 }
 

@@ -289,7 +289,8 @@ pub fn exposure_frames(exposure_ms: f64, frame_period_ms: f64) -> Option<u32> {
 fn validate_coding(config: &RigConfig, s: &StructuredLightConfig, bad: &mut dyn FnMut(&str, String)) {
     let projector_width = config.projector.as_ref().map(|p| p.size().0);
     if s.rows && matches!(s.coding, StripeCoding::DeBruijn | StripeCoding::Sweep) {
-        bad("rows", format!("coding {:?} codes columns only: set rows = false", s.coding));
+        let name = if s.coding == StripeCoding::DeBruijn { "debruijn" } else { "sweep" };
+        bad("rows", format!("coding = \"{name}\" codes columns only: set rows = false"));
     }
     match s.coding {
         StripeCoding::Gray | StripeCoding::Binary => {}

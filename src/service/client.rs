@@ -24,7 +24,7 @@ pub enum ClientError {
     #[error("malformed HTTP response: {0}")]
     Malformed(&'static str),
     /// The daemon answered with an error.
-    #[error("{status} {code}: {message}")]
+    #[error("the daemon refused: {message} (HTTP {status}, {code})")]
     Api {
         /// HTTP status.
         status: u16,
@@ -36,6 +36,15 @@ pub enum ClientError {
     /// A JSON body could not be parsed.
     #[error("malformed JSON from the daemon")]
     Json(#[source] serde_json::Error),
+    /// A downloaded file could not be written.
+    #[error("cannot write {path}")]
+    Write {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The error.
+        #[source]
+        source: std::io::Error,
+    },
 }
 
 /// An HTTP response.
@@ -59,6 +68,9 @@ impl Response {
         self.headers.iter().find(|(k, _)| k == name).map(|(_, v)| v.as_str())
     }
 }
+
+/// An open streamed response: status, headers (names lower-cased) and a reader of the body.
+pub type OpenStream = (u16, Vec<(String, String)>, Box<dyn BufRead + Send>);
 
 /// A client for one daemon.
 #[derive(Debug, Clone)]
@@ -145,6 +157,63 @@ impl Client {
         Err(ClientError::Api { status: r.status, code, message })
     }
 
+    /// DELETE `path`; a non-2xx status becomes [`ClientError::Api`].
+    pub fn delete(&self, path: &str) -> Result<(), ClientError> {
+        self.request("DELETE", path, None).map(|_| ())
+    }
+
+    /// GET `path` and stream its body into the file `dest` (through `dest` + `.part`, renamed when
+    /// complete, so a cut download leaves no file that looks whole). Returns the bytes written.
+    pub fn download(&self, path: &str, dest: &std::path::Path) -> Result<u64, ClientError> {
+        let stream = self.send("GET", path, None, "*/*")?;
+        let mut reader = BufReader::new(stream);
+        let (status, headers) = read_head(&mut reader).map_err(|e| e.with_addr(self.addr))?;
+        let chunked = headers.iter().any(|(k, v)| k == "transfer-encoding" && v.contains("chunked"));
+        let mut body: Box<dyn Read> = if chunked { Box::new(ChunkedReader::new(reader)) } else { Box::new(reader) };
+        if !(200..300).contains(&status) {
+            let mut text = Vec::new();
+            body.take(64 * 1024).read_to_end(&mut text).map_err(self.io())?;
+            let r = Response { status, headers, body: text };
+            let (code, message) = match r.json() {
+                Ok(v) => (
+                    v["error"]["code"].as_str().unwrap_or("unknown").to_owned(),
+                    v["error"]["message"].as_str().unwrap_or("").to_owned(),
+                ),
+                Err(_) => ("unknown".to_owned(), String::from_utf8_lossy(&r.body).into_owned()),
+            };
+            return Err(ClientError::Api { status, code, message });
+        }
+        let length = headers.iter().find(|(k, _)| k == "content-length").and_then(|(_, v)| v.parse::<u64>().ok());
+        if let Some(n) = length.filter(|_| !chunked) {
+            body = Box::new(body.take(n));
+        }
+        let mut part = dest.as_os_str().to_owned();
+        part.push(".part");
+        let part = std::path::PathBuf::from(part);
+        let write_err = |source| ClientError::Write { path: part.clone(), source };
+        let mut file = std::fs::File::create(&part).map_err(write_err)?;
+        let n = std::io::copy(&mut body, &mut file).map_err(self.io())?;
+        if length.is_some_and(|want| !chunked && want != n) {
+            let _ = std::fs::remove_file(&part);
+            return Err(ClientError::Malformed("the body ended before its Content-Length"));
+        }
+        file.sync_all().map_err(write_err)?;
+        std::fs::rename(&part, dest).map_err(|source| ClientError::Write { path: dest.to_owned(), source })?;
+        Ok(n)
+    }
+
+    /// GET `path` and return the status, the headers and a reader of the (de-chunked) body as it
+    /// arrives, for streams (`camera.mjpg`, `events`).
+    pub fn open_stream(&self, path: &str) -> Result<OpenStream, ClientError> {
+        let stream = self.send("GET", path, None, "*/*")?;
+        let mut reader = BufReader::new(stream);
+        let (status, headers) = read_head(&mut reader).map_err(|e| e.with_addr(self.addr))?;
+        let chunked = headers.iter().any(|(k, v)| k == "transfer-encoding" && v.contains("chunked"));
+        let body: Box<dyn BufRead + Send> =
+            if chunked { Box::new(BufReader::new(ChunkedReader::new(reader))) } else { Box::new(reader) };
+        Ok((status, headers, body))
+    }
+
     /// GET a JSON document.
     pub fn get_json(&self, path: &str) -> Result<serde_json::Value, ClientError> {
         self.request("GET", path, None)?.json()
@@ -157,13 +226,14 @@ impl Client {
     }
 
     /// Follow the progress event stream, calling `on_event` with each `progress` event's JSON data
-    /// until it returns `false` or the stream ends.
+    /// until it returns `false` or the stream ends (other events are skipped).
     pub fn watch(&self, mut on_event: impl FnMut(&serde_json::Value) -> bool) -> Result<(), ClientError> {
         self.watch_events(|name, v| name != "progress" || on_event(v))
     }
 
-    /// Follow the event stream, calling `on_event` with each event's name (`progress`, `model`, ...)
-    /// and JSON data until it returns `false` or the stream ends.
+    /// Follow the event stream, calling `on_event` with each event's name (`progress`, `model`,
+    /// `devices`...; `message` when it has none) and JSON data until it returns `false` or the
+    /// stream ends.
     pub fn watch_events(&self, mut on_event: impl FnMut(&str, &serde_json::Value) -> bool) -> Result<(), ClientError> {
         let stream = self.send("GET", "/api/v1/events", None, "text/event-stream")?;
         let mut reader = BufReader::new(stream);
@@ -189,18 +259,18 @@ impl Client {
             let l = line.trim_end_matches(['\r', '\n']);
             if let Some(d) = l.strip_prefix("data:") {
                 data.push_str(d.trim_start());
-            } else if let Some(n) = l.strip_prefix("event:") {
-                n.trim_start().clone_into(&mut name);
+            } else if let Some(e) = l.strip_prefix("event:") {
+                e.trim().clone_into(&mut name);
             } else if l.is_empty() && !data.is_empty() {
                 let v: serde_json::Value = serde_json::from_str(&data).map_err(ClientError::Json)?;
                 data.clear();
-                // An event without a name is a `message` (the SSE default).
                 let event = if name.is_empty() { "message" } else { name.as_str() };
-                let more = on_event(event, &v);
-                name.clear();
-                if !more {
+                if !on_event(event, &v) {
                     return Ok(());
                 }
+                name.clear();
+            } else if l.is_empty() {
+                name.clear();
             }
         }
     }
@@ -218,6 +288,133 @@ pub fn fetch_results(client: &Client, id: &str, out: &std::path::Path) -> Result
         written.push(name);
     }
     Ok(written)
+}
+
+/// Download scan `id`'s whole directory as `archive.zip` into `dest`, then, with `unpack`, write
+/// every file of it under `out` (frames in `out/frames/`). Returns the files unpacked.
+pub fn fetch_archive(
+    client: &Client,
+    id: &str,
+    dest: &std::path::Path,
+    unpack: Option<&std::path::Path>,
+) -> Result<Vec<String>, FetchError> {
+    client.download(&format!("/api/v1/scans/{id}/archive.zip"), dest).map_err(FetchError::Client)?;
+    let Some(out) = unpack else { return Ok(Vec::new()) };
+    let bytes = std::fs::read(dest).map_err(|source| FetchError::Write { path: dest.to_owned(), source })?;
+    let entries =
+        stored_zip_entries(&bytes).map_err(|problem| FetchError::Archive { path: dest.to_owned(), problem })?;
+    let mut names = Vec::new();
+    for (name, data) in entries {
+        let safe = !name.is_empty()
+            && !name.starts_with('/')
+            && name.split('/').all(|c| !c.is_empty() && c != "." && c != "..");
+        if !safe {
+            return Err(FetchError::Archive {
+                path: dest.to_owned(),
+                problem: format!("entry `{name}` leaves the directory"),
+            });
+        }
+        let path = out.join(&name);
+        if let Some(parent) = path.parent() {
+            std::fs::create_dir_all(parent).map_err(|source| FetchError::Write { path: parent.to_owned(), source })?;
+        }
+        crate::atomic::write_atomic(&path, data).map_err(FetchError::WriteFile)?;
+        names.push(name);
+    }
+    Ok(names)
+}
+
+/// The entries of a zip file of stored (uncompressed) entries, as the daemon's archive writes it,
+/// each checked against its CRC-32. The problem, in words, on anything else.
+pub fn stored_zip_entries(zip: &[u8]) -> Result<Vec<(String, &[u8])>, String> {
+    let u16_at = |i: usize| zip.get(i..i + 2).map(|b| u16::from_le_bytes([b[0], b[1]]) as usize);
+    let u32_at = |i: usize| zip.get(i..i + 4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize);
+    let eocd = (0..zip.len().saturating_sub(21))
+        .rev()
+        .find(|&i| u32_at(i) == Some(0x0605_4b50))
+        .ok_or("no end of central directory record")?;
+    let count = u16_at(eocd + 10).ok_or("truncated end record")?;
+    let mut at = u32_at(eocd + 16).ok_or("truncated end record")?;
+    let mut out = Vec::with_capacity(count);
+    for n in 0..count {
+        let bad = |what: &str| format!("central directory entry {n}: {what}");
+        if u32_at(at) != Some(0x0201_4b50) {
+            return Err(bad("bad signature"));
+        }
+        let method = u16_at(at + 10).ok_or_else(|| bad("truncated"))?;
+        let crc = u32_at(at + 16).ok_or_else(|| bad("truncated"))? as u32;
+        let size = u32_at(at + 20).ok_or_else(|| bad("truncated"))?;
+        let name_len = u16_at(at + 28).ok_or_else(|| bad("truncated"))?;
+        let extra = u16_at(at + 30).ok_or_else(|| bad("truncated"))?;
+        let comment = u16_at(at + 32).ok_or_else(|| bad("truncated"))?;
+        let local = u32_at(at + 42).ok_or_else(|| bad("truncated"))?;
+        let name = zip.get(at + 46..at + 46 + name_len).ok_or_else(|| bad("truncated name"))?;
+        let name = String::from_utf8_lossy(name).into_owned();
+        if method != 0 {
+            return Err(format!("{name}: compression method {method} (only stored entries are read)"));
+        }
+        let local_name = u16_at(local + 26).ok_or_else(|| bad("truncated local header"))?;
+        let local_extra = u16_at(local + 28).ok_or_else(|| bad("truncated local header"))?;
+        let start = local + 30 + local_name + local_extra;
+        let data = zip.get(start..start + size).ok_or_else(|| format!("{name}: data cut short"))?;
+        if crc32fast::hash(data) != crc {
+            return Err(format!("{name}: CRC-32 mismatch"));
+        }
+        out.push((name, data));
+        at += 46 + name_len + extra + comment;
+    }
+    Ok(out)
+}
+
+/// One part of a `multipart/x-mixed-replace` stream (as `camera.mjpg` sends it).
+#[derive(Debug, Clone)]
+pub struct MultipartPart {
+    /// The part's headers, names lower-cased.
+    pub headers: Vec<(String, String)>,
+    /// Its body (`Content-Length` bytes).
+    pub body: Vec<u8>,
+}
+
+/// Read the next part of a multipart stream with boundary `boundary` (without the leading `--`):
+/// skips to the boundary line, reads the part's headers and its `Content-Length` bytes. `None` at
+/// the end of the stream.
+pub fn read_multipart_part(r: &mut dyn BufRead, boundary: &str) -> std::io::Result<Option<MultipartPart>> {
+    let invalid = |m: &str| std::io::Error::new(std::io::ErrorKind::InvalidData, m.to_owned());
+    let marker = format!("--{boundary}");
+    let mut line = String::new();
+    loop {
+        line.clear();
+        if r.read_line(&mut line)? == 0 {
+            return Ok(None);
+        }
+        if line.trim_end() == marker {
+            break;
+        }
+    }
+    let mut headers = Vec::new();
+    loop {
+        line.clear();
+        if r.read_line(&mut line)? == 0 {
+            return Err(invalid("part headers cut short"));
+        }
+        let l = line.trim_end_matches(['\r', '\n']);
+        if l.is_empty() {
+            break;
+        }
+        let (k, v) = l.split_once(':').ok_or_else(|| invalid("part header without a colon"))?;
+        headers.push((k.trim().to_ascii_lowercase(), v.trim().to_owned()));
+        if headers.len() > 50 {
+            return Err(invalid("too many part headers"));
+        }
+    }
+    let len = headers
+        .iter()
+        .find(|(k, _)| k == "content-length")
+        .and_then(|(_, v)| v.parse::<usize>().ok())
+        .ok_or_else(|| invalid("part without a Content-Length"))?;
+    let mut body = vec![0; len];
+    r.read_exact(&mut body)?;
+    Ok(Some(MultipartPart { headers, body }))
 }
 
 /// Why fetching results failed.
@@ -238,6 +435,14 @@ pub enum FetchError {
     /// A file cannot be written.
     #[error("cannot write a result file")]
     WriteFile(#[source] crate::atomic::AtomicWriteError),
+    /// The downloaded archive cannot be unpacked.
+    #[error("{path}: {problem}")]
+    Archive {
+        /// The archive.
+        path: std::path::PathBuf,
+        /// What is wrong.
+        problem: String,
+    },
 }
 
 enum HeadError {

@@ -38,7 +38,8 @@ pub struct ProgressSnapshot {
     pub message: String,
     /// Seconds since this run of the scan started.
     pub elapsed_s: f64,
-    /// Estimated seconds until the views are all captured, from the pace so far.
+    /// Estimated seconds until the results are on disk: capture and processing of the views left
+    /// at this run's pace, plus the method's finishing stage (see [`remaining_estimate`]).
     pub remaining_s: Option<f64>,
 }
 
@@ -179,6 +180,10 @@ struct Active {
     id: String,
     cancel: CancelToken,
     pause: Arc<AtomicBool>,
+    /// A scan on the rig (not a reprocess): it owns the hardware.
+    hardware: bool,
+    /// The stored scan a reprocess reads its views from.
+    reads: Option<String>,
 }
 
 /// The scan jobs of one daemon.
@@ -242,6 +247,29 @@ impl Jobs {
     /// The id of the running scan.
     pub fn running(&self) -> Option<String> {
         self.active.lock().ok().and_then(|a| a.as_ref().map(|a| a.id.clone()))
+    }
+
+    /// The id of the running job when it is a scan on the rig (it owns the camera, the table, the
+    /// lights and the projector; a reprocess needs no hardware and gives `None`).
+    pub fn scanning(&self) -> Option<String> {
+        self.active.lock().ok().and_then(|a| a.as_ref().filter(|a| a.hardware).map(|a| a.id.clone()))
+    }
+
+    /// Delete scan `id`: its directory (frames, results) and its entry. Refused while it runs.
+    pub fn delete(&self, id: &str) -> Result<(), JobError> {
+        // Held while removing, so that the scan cannot be resumed or reprocessed meanwhile.
+        let active = self.active.lock().map_err(|_| JobError::Busy(String::new()))?;
+        let meta = self.store.get(id).map_err(JobError::Store)?;
+        let runs = active.as_ref().is_some_and(|a| a.id == id);
+        if runs || meta.status == ScanStatus::Running {
+            return Err(JobError::WrongState { id: id.to_owned(), status: ScanStatus::Running, action: "delete" });
+        }
+        if let Some(a) = active.as_ref().filter(|a| a.reads.as_deref() == Some(id)) {
+            return Err(JobError::Busy(a.id.clone()));
+        }
+        self.store.remove(id).map_err(JobError::Store)?;
+        tracing::info!(scan = id, "scan deleted");
+        Ok(())
     }
 
     /// Start a new scan with `config` adjusted by `req`.
@@ -329,6 +357,22 @@ impl Jobs {
         Ok(meta)
     }
 
+    /// How long the finishing stage (meshing, export: from the last view to the results on disk)
+    /// of a job with `config` should take, seconds: the `after_last_frame_s` of the newest
+    /// complete stored scan of the same method, scaled by the cube of the resolution ratio (the
+    /// finishing work grows with the voxels). `None` when no such scan is stored.
+    fn finishing_estimate(&self, config: &RigConfig) -> Option<f64> {
+        let method = config.reconstruction.method;
+        let scans = self.store.list().ok()?;
+        scans.iter().rev().filter(|m| m.method == method && m.status == ScanStatus::Complete).find_map(|m| {
+            let bytes = std::fs::read(self.store.dir(&m.id).join("report.json")).ok()?;
+            let report: serde_json::Value = serde_json::from_slice(&bytes).ok()?;
+            let then = report["timings_s"]["after_last_frame_s"].as_f64()?;
+            let ratio = f64::from(config.reconstruction.resolution) / f64::from(m.resolution.max(1));
+            Some(then * ratio.powi(3))
+        })
+    }
+
     /// The rig file stored with scan `id`.
     fn stored_config(&self, id: &str) -> Result<RigConfig, JobError> {
         crate::rigfile::load(&self.store.dir(id).join(crate::scan::driver::RIG_FILE))
@@ -384,7 +428,9 @@ impl Jobs {
     fn launch(&self, active: &mut Option<Active>, meta: ScanMeta, work: Work) {
         let cancel = CancelToken::new();
         let pause = Arc::new(AtomicBool::new(false));
-        *active = Some(Active { id: meta.id.clone(), cancel: cancel.clone(), pause: pause.clone() });
+        let hardware = matches!(work, Work::Scan { .. });
+        let reads = meta.reprocess_of.clone();
+        *active = Some(Active { id: meta.id.clone(), cancel: cancel.clone(), pause: pause.clone(), hardware, reads });
         self.metrics.scans_started.fetch_add(1, Ordering::Relaxed);
         let (config, what) = match &work {
             Work::Scan { config, resume: true } => (config, "resuming"),
@@ -405,7 +451,9 @@ impl Jobs {
             remaining_s: None,
         });
         self.live.send_replace(None);
-        let events = progress_sink(self.progress.clone(), self.live.clone(), id.clone(), self.metrics.clone(), started);
+        let finishing = self.finishing_estimate(config);
+        let events =
+            progress_sink(self.progress.clone(), self.live.clone(), id.clone(), self.metrics.clone(), started, finishing);
         let live = Some(LiveSpec::default());
         let out = self.store.dir(&id);
         let this = self.clone();
@@ -487,6 +535,27 @@ fn views_serve(stored: Method, wanted: Method) -> bool {
     stored == wanted || (silhouette(stored) && silhouette(wanted))
 }
 
+/// Seconds until a job's results are on disk.
+///
+/// `per_view_s` is this run's pace (seconds per view captured and processed, views replayed on
+/// resume left out), `views_left` the views still to capture and process, `finishing_s` the
+/// expected length of the method's finishing stage (see `Jobs::finishing_estimate`; without one,
+/// one view's time), and `finishing_for_s` how long the finishing stage has already run once
+/// every view is in (`None` before that). The finishing part counts down and stays at 0 once it
+/// overruns.
+pub fn remaining_estimate(
+    per_view_s: f64,
+    views_left: usize,
+    finishing_s: Option<f64>,
+    finishing_for_s: Option<f64>,
+) -> f64 {
+    let finishing = finishing_s.unwrap_or(per_view_s);
+    match finishing_for_s {
+        Some(t) => (finishing - t).max(0.0),
+        None => per_view_s * views_left as f64 + finishing,
+    }
+}
+
 /// The progress sink of a job: turns scan events into the published snapshot.
 /// Live previews go to `live`, as the estimate of scan `scan_id`.
 fn progress_sink(
@@ -495,9 +564,12 @@ fn progress_sink(
     scan_id: String,
     metrics: Arc<Metrics>,
     started: Instant,
+    finishing_s: Option<f64>,
 ) -> Box<dyn FnMut(ScanEvent) + Send> {
     let mut first_new: Option<(usize, Instant)> = None;
     let mut version = 0;
+    let mut per_view_s: Option<f64> = None;
+    let mut last_view = Instant::now();
     Box::new(move |e: ScanEvent| {
         if let ScanEvent::Preview { position, cloud, .. } = &e {
             version += 1;
@@ -527,9 +599,12 @@ fn progress_sink(
                     // The pace of views captured and processed in this run (replayed ones come fast).
                     let (k0, t0) = *first_new.get_or_insert((p.step, Instant::now()));
                     let done = p.step.saturating_sub(k0);
+                    last_view = Instant::now();
                     if done > 0 {
                         let per = t0.elapsed().as_secs_f64() / done as f64;
-                        p.remaining_s = Some(per * p.total.saturating_sub(p.step) as f64);
+                        per_view_s = Some(per);
+                        p.remaining_s =
+                            Some(remaining_estimate(per, p.total.saturating_sub(p.step), finishing_s, None));
                     }
                 }
                 ScanEvent::Preview { .. } => {}
@@ -537,7 +612,11 @@ fn progress_sink(
                     p.stage = (*s).to_owned();
                     if p.step >= p.total {
                         p.message = format!("reconstruction: {s}");
-                        p.remaining_s = Some(0.0);
+                        let since = Some(last_view.elapsed().as_secs_f64());
+                        p.remaining_s = per_view_s
+                            .or(finishing_s)
+                            .map(|per| remaining_estimate(per, 0, finishing_s, since))
+                            .or(Some(0.0));
                     } else {
                         p.message = format!("view {} of {}: {s}", p.step + 1, p.total);
                     }
@@ -545,4 +624,20 @@ fn progress_sink(
             }
         });
     })
+}
+
+#[cfg(test)]
+mod remaining_tests {
+    use super::remaining_estimate;
+
+    #[test]
+    fn remaining_time_counts_the_views_left_and_the_finishing_stage() {
+        // 2 s a view, 5 views left, finishing measured at 3 s: 13 s.
+        assert_eq!(remaining_estimate(2.0, 5, Some(3.0), None), 13.0);
+        // No finishing figure yet: one view's time stands for it.
+        assert_eq!(remaining_estimate(2.0, 5, None, None), 12.0);
+        // Finishing, 1 s in: 2 s left; overrun: 0.
+        assert_eq!(remaining_estimate(2.0, 0, Some(3.0), Some(1.0)), 2.0);
+        assert_eq!(remaining_estimate(2.0, 0, Some(3.0), Some(9.0)), 0.0);
+    }
 }

@@ -7,7 +7,11 @@
 //! and the process exits within [`Options::shutdown_deadline`].
 
 pub mod api;
+pub mod archive;
+pub mod camera;
 pub mod client;
+pub mod console;
+pub mod control;
 pub mod http;
 pub mod jobs;
 pub mod metrics;
@@ -99,6 +103,7 @@ pub async fn run(
     let (rig, rig_thread) = rig::RigHandle::spawn(config.clone(), metrics.clone()).map_err(ServiceError::Thread)?;
     let jobs = jobs::Jobs::new(Arc::new(store), rig.clone(), metrics.clone());
     let token = CancellationToken::new();
+    let camera = camera::LiveCamera::new(rig.clone());
     let state = api::AppState {
         config: Arc::new(RwLock::new(config)),
         rig,
@@ -107,6 +112,7 @@ pub async fn run(
         token: opts.token.as_deref().map(Arc::from),
         shutdown: token.clone(),
         started: Instant::now(),
+        camera,
     };
     let listener = tokio::net::TcpListener::bind(opts.listen)
         .await

@@ -159,10 +159,10 @@ fn find_device(config: &GenicamCameraConfig) -> Result<String, DeviceError> {
     match found.as_slice() {
         [one] => Ok(one.id.clone()),
         [] => Err(disconnected(format!(
-            "no GenICam camera with vendor {:?} model {:?} serial {:?} (found: {})",
-            config.vendor,
-            config.model,
-            config.serial,
+            "no GenICam camera with vendor {} model {} serial {} (found: {})",
+            config.vendor.as_deref().unwrap_or("(any)"),
+            config.model.as_deref().unwrap_or("(any)"),
+            config.serial.as_deref().unwrap_or("(any)"),
             if all.is_empty() {
                 "none".to_owned()
             } else {
