@@ -18,7 +18,9 @@ const state = {
   running: false,
   methods: [],
   scans: [],
-  live: { scanId: null, wanted: 0, shown: 0, fetching: false },
+  // The running scan's live estimate: the last `model` event, whether it is still to be fetched,
+  // how many estimates were drawn and the event of the one on screen.
+  live: { scanId: null, event: null, dirty: false, fetching: false, renders: 0, shown: null },
   shownScan: null,
   kind: "mesh",
 };
@@ -131,25 +133,26 @@ async function openScan(scan) {
   $("viewer-title").textContent = title + " has no " + (state.kind === "points" ? "point cloud" : state.kind) + " to show.";
 }
 
-/** Fetch and show the newest live estimate (one request at a time, the latest version wins). */
+/** Fetch and show the newest live estimate (one request at a time; the latest event wins). */
 async function showLive() {
   const live = state.live;
-  if (live.fetching || live.wanted <= live.shown || !live.scanId) return;
+  if (live.fetching || !live.dirty || !live.scanId) return;
   live.fetching = true;
-  const version = live.wanted, id = live.scanId;
+  live.dirty = false;
+  const id = live.scanId, m = live.event;
   try {
-    const g = await parsePly(await api(`/scans/${id}/live.ply?v=${version}`));
+    const g = await parsePly(await api(`/scans/${id}/live.ply?v=${m.version}`));
     if (g && live.scanId === id) {
-      const p = live.event || {};
+      const n = g.getAttribute("position").count;
       viewer.show(g, "points", {
         live: true, scanId: id,
-        title: "Live estimate while scanning: after view " + ((p.position ?? 0) + 1) + ", " + (p.points ?? g.getAttribute("position").count).toLocaleString() + " points",
+        title: "Live estimate while scanning: after view " + ((m.position ?? 0) + 1) + ", " + n.toLocaleString() + " points",
       });
-      live.shown = version;
+      live.renders += 1;
+      live.shown = m;
     }
   } catch (e) {
     $("viewer-title").textContent = "Live estimate unavailable: " + e.message;
-    live.shown = version;
   } finally {
     live.fetching = false;
   }
@@ -266,7 +269,9 @@ async function loadCamera() {
   }
 }
 let cameraRetry = null;
+$("camera").addEventListener("load", () => { $("camera").hidden = false; });
 $("camera").addEventListener("error", () => {
+  $("camera").hidden = true;
   $("camera-note").textContent = "No live picture from the camera; trying again in 10 s.";
   clearTimeout(cameraRetry);
   cameraRetry = setTimeout(() => { $("camera").src = "/api/v1/camera.mjpg?t=" + Date.now(); }, 10000);
@@ -440,10 +445,10 @@ function listen() {
   events.addEventListener("model", (ev) => {
     const m = JSON.parse(ev.data);
     const live = state.live;
-    if (live.scanId !== m.scan_id) Object.assign(live, { scanId: m.scan_id, wanted: 0, shown: 0 });
+    if (live.scanId !== m.scan_id) Object.assign(live, { scanId: m.scan_id, renders: 0, shown: null });
     state.shownScan = null;
     live.event = m;
-    live.wanted = Math.max(live.wanted, m.version);
+    live.dirty = true;
     showLive();
   });
 }

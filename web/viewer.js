@@ -110,7 +110,8 @@ export class Viewer {
   /** Frame the current model: target its centre, distance to fit. */
   frame() {
     if (!this.model) return;
-    const box = new THREE.Box3().setFromObject(this.modelGroup), c = box.getCenter(new THREE.Vector3());
+    // The model's own box (setFromObject would also take in the box helper's unit cube).
+    const box = this.modelBox, c = box.getCenter(new THREE.Vector3());
     const size = box.getSize(new THREE.Vector3()).length() || 0.1;
     this.controls.target.copy(c);
     const dir = new THREE.Vector3(0.45, -0.8, 0.45).normalize();
@@ -150,6 +151,7 @@ export class Viewer {
     }
     this.model = object;
     this.modelGroup.add(object);
+    this.modelBox = box.clone();
     this.box = new THREE.Box3Helper(box, 0x5c6bc0);
     this.modelGroup.add(this.box);
     this.setScale(Math.max(size.x, size.y, size.z));
