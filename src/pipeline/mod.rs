@@ -19,6 +19,7 @@ pub mod chamfer;
 pub mod cloud;
 pub mod coloring;
 pub mod depth_fusion;
+pub mod display;
 pub mod export;
 pub mod laser;
 pub mod light_calibration;

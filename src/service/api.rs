@@ -19,6 +19,7 @@ use futures_util::{Stream, StreamExt};
 use serde_json::json;
 use tokio_util::sync::CancellationToken;
 
+use super::console;
 use super::jobs::{JobError, Jobs, ReprocessRequest, StartRequest};
 use super::metrics::Metrics;
 use super::rig::{error_chain, RigError, RigHandle};
@@ -45,9 +46,16 @@ pub struct AppState {
     pub shutdown: CancellationToken,
     /// When the daemon started.
     pub started: Instant,
+    /// The live camera frames every MJPEG viewer shares.
+    pub camera: Arc<super::camera::LiveCamera>,
 }
 
 impl AppState {
+    /// The configuration in force.
+    pub fn app_config(&self) -> Arc<RigConfig> {
+        self.config()
+    }
+
     fn config(&self) -> Arc<RigConfig> {
         self.config.read().map(|c| c.clone()).unwrap_or_else(|p| p.into_inner().clone())
     }
@@ -62,7 +70,8 @@ pub struct ApiError {
 }
 
 impl ApiError {
-    fn new(status: StatusCode, code: &'static str, message: impl Into<String>) -> Self {
+    /// An error answer with `status`, a machine-readable `code` and a message in words.
+    pub fn new(status: StatusCode, code: &'static str, message: impl Into<String>) -> Self {
         ApiError { status, code, message: message.into() }
     }
 }
@@ -107,7 +116,7 @@ pub fn router(state: AppState) -> Router {
         .route("/status", get(status))
         .route("/devices", get(devices))
         .route("/scans", get(list_scans).post(start_scan))
-        .route("/scans/{id}", get(get_scan))
+        .route("/scans/{id}", get(get_scan).delete(console::delete_scan))
         .route("/scans/{id}/pause", post(pause_scan))
         .route("/scans/{id}/resume", post(resume_scan))
         .route("/scans/{id}/cancel", post(cancel_scan))
@@ -115,7 +124,19 @@ pub fn router(state: AppState) -> Router {
         .route("/methods", get(list_methods))
         .route("/scans/{id}/files/{*path}", get(scan_file))
         .route("/events", get(events))
-        .route("/preview", get(preview));
+        .route("/preview", get(preview))
+        // The console (issue 16): live camera, manual control, scan management.
+        .route("/camera.mjpg", get(console::camera_mjpg))
+        .route("/camera", get(console::camera_info))
+        .route("/control", get(console::control_state))
+        .route("/control/turntable", post(console::control_turntable))
+        .route("/control/light", post(console::control_light))
+        .route("/control/laser", post(console::control_laser))
+        .route("/control/projector", post(console::control_projector))
+        .route("/devices/{name}/reconnect", post(console::reconnect_device))
+        .route("/scans/{id}/archive.zip", get(console::archive))
+        .route("/scans/{id}/thumbnail.jpg", get(console::thumbnail))
+        .route("/scans/{id}/model.ply", get(console::display_model));
     Router::new()
         .nest("/api/v1", api)
         .route("/metrics", get(metrics))
@@ -233,7 +254,9 @@ async fn devices(State(s): State<AppState>) -> Json<serde_json::Value> {
 }
 
 async fn list_scans(State(s): State<AppState>) -> Result<Json<serde_json::Value>, ApiError> {
-    Ok(Json(json!({ "scans": s.jobs.store().list()? })))
+    let store = s.jobs.store();
+    let scans: Vec<serde_json::Value> = store.list()?.iter().map(|m| console::scan_entry(store, m)).collect();
+    Ok(Json(json!({ "scans": scans })))
 }
 
 async fn start_scan(
@@ -262,7 +285,8 @@ async fn get_scan(State(s): State<AppState>, Path(id): Path<String>) -> Result<J
     let frames = std::fs::read_dir(dir.join("frames"))
         .map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".png")).count())
         .unwrap_or(0);
-    Ok(Json(json!({ "scan": meta, "frames": frames, "report": report })))
+    let entry = console::scan_entry(s.jobs.store(), &meta);
+    Ok(Json(json!({ "scan": entry, "frames": frames, "report": report })))
 }
 
 async fn pause_scan(State(s): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, ApiError> {
@@ -363,7 +387,8 @@ async fn events(State(s): State<AppState>) -> Sse<impl Stream<Item = Result<Even
         let p = rx.borrow_and_update().clone();
         Some((Ok(Event::default().event("progress").json_data(&p).unwrap_or_default()), rx))
     });
-    let stream = first.chain(updates).take_until(s.shutdown.clone().cancelled_owned());
+    let stream = futures_util::stream::select(first.chain(updates), console::device_events(&s))
+        .take_until(s.shutdown.clone().cancelled_owned());
     Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(10)))
 }
 

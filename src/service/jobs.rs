@@ -161,6 +161,8 @@ struct Active {
     id: String,
     cancel: CancelToken,
     pause: Arc<AtomicBool>,
+    /// A scan on the rig (not a reprocess): it owns the hardware.
+    hardware: bool,
 }
 
 /// The scan jobs of one daemon.
@@ -212,6 +214,26 @@ impl Jobs {
     /// The id of the running scan.
     pub fn running(&self) -> Option<String> {
         self.active.lock().ok().and_then(|a| a.as_ref().map(|a| a.id.clone()))
+    }
+
+    /// The id of the running job when it is a scan on the rig (it owns the camera, the table, the
+    /// lights and the projector; a reprocess needs no hardware and gives `None`).
+    pub fn scanning(&self) -> Option<String> {
+        self.active.lock().ok().and_then(|a| a.as_ref().filter(|a| a.hardware).map(|a| a.id.clone()))
+    }
+
+    /// Delete scan `id`: its directory (frames, results) and its entry. Refused while it runs.
+    pub fn delete(&self, id: &str) -> Result<(), JobError> {
+        // Held while removing, so that the scan cannot be resumed or reprocessed meanwhile.
+        let active = self.active.lock().map_err(|_| JobError::Busy(String::new()))?;
+        let meta = self.store.get(id).map_err(JobError::Store)?;
+        let runs = active.as_ref().is_some_and(|a| a.id == id);
+        if runs || meta.status == ScanStatus::Running {
+            return Err(JobError::WrongState { id: id.to_owned(), status: ScanStatus::Running, action: "delete" });
+        }
+        self.store.remove(id).map_err(JobError::Store)?;
+        tracing::info!(scan = id, "scan deleted");
+        Ok(())
     }
 
     /// Start a new scan with `config` adjusted by `req`.
@@ -354,7 +376,8 @@ impl Jobs {
     fn launch(&self, active: &mut Option<Active>, meta: ScanMeta, work: Work) {
         let cancel = CancelToken::new();
         let pause = Arc::new(AtomicBool::new(false));
-        *active = Some(Active { id: meta.id.clone(), cancel: cancel.clone(), pause: pause.clone() });
+        let hardware = matches!(work, Work::Scan { .. });
+        *active = Some(Active { id: meta.id.clone(), cancel: cancel.clone(), pause: pause.clone(), hardware });
         self.metrics.scans_started.fetch_add(1, Ordering::Relaxed);
         let (config, what) = match &work {
             Work::Scan { config, resume: true } => (config, "resuming"),

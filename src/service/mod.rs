@@ -7,7 +7,11 @@
 //! and the process exits within [`Options::shutdown_deadline`].
 
 pub mod api;
+pub mod archive;
+pub mod camera;
 pub mod client;
+pub mod console;
+pub mod control;
 pub mod http;
 pub mod jobs;
 pub mod metrics;
@@ -102,12 +106,13 @@ pub async fn run(
     let token = CancellationToken::new();
     let state = api::AppState {
         config: Arc::new(RwLock::new(config)),
-        rig,
+        rig: rig.clone(),
         jobs: jobs.clone(),
         metrics,
         token: opts.token.as_deref().map(Arc::from),
         shutdown: token.clone(),
         started: Instant::now(),
+        camera: camera::LiveCamera::new(rig.clone()),
     };
     let listener = tokio::net::TcpListener::bind(opts.listen)
         .await

@@ -17,6 +17,7 @@ use crate::devices::serial::LinkState;
 use crate::devices::{build_rig, DeviceError, ErrorKind, Rig};
 use crate::scan::{self, Report, ScanError, ScanEvent};
 
+use super::control::{self, ControlCommand, ControlError, ControlState};
 use super::metrics::Metrics;
 
 /// The connection state of a device.
@@ -76,6 +77,12 @@ pub enum RigError {
     /// A preview capture that failed, shared by every request it answered.
     #[error(transparent)]
     Shared(Arc<RigError>),
+    /// A manual control command failed.
+    #[error(transparent)]
+    Control(ControlError),
+    /// No device of that name in the rig file.
+    #[error("the rig has no device `{0}`")]
+    UnknownDevice(String),
 }
 
 impl RigError {
@@ -88,8 +95,26 @@ impl RigError {
     }
 }
 
+/// One preview frame as captured, before any encoding.
+#[derive(Debug)]
+pub struct PreviewFrame {
+    /// The camera's frame counter.
+    pub sequence: u64,
+    /// The image, 8-bit RGB.
+    pub image: image::RgbImage,
+}
+
 /// What a preview capture gives every request waiting for it.
-type PreviewReply = Result<Arc<Vec<u8>>, Arc<RigError>>;
+type PreviewReply = Result<Arc<PreviewFrame>, Arc<RigError>>;
+
+/// What the device thread publishes about the camera, for `GET /api/v1/camera`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct CameraSize {
+    /// Width, pixels.
+    pub width: u32,
+    /// Height, pixels.
+    pub height: u32,
+}
 
 /// The preview requests waiting for the next capture: `None` when no capture is queued.
 /// Concurrent previews share one capture, so at most one preview command is ever in the device
@@ -121,6 +146,8 @@ enum Command {
     Scan(ScanJob, oneshot::Sender<Result<Report, RigError>>),
     Park(oneshot::Sender<Result<(), RigError>>),
     Reload(Arc<RigConfig>),
+    Control(ControlCommand, oneshot::Sender<Result<ControlState, RigError>>),
+    Reconnect(String, oneshot::Sender<Result<(), RigError>>),
 }
 
 /// A cloneable handle to the device thread.
@@ -129,6 +156,18 @@ pub struct RigHandle {
     tx: SyncSender<Command>,
     status: RigStatus,
     previews: PreviewWaiters,
+    shared: Arc<Shared>,
+}
+
+/// What the device thread publishes besides the device status, read without asking it.
+#[derive(Debug)]
+struct Shared {
+    /// The manual control state (see [`ControlState`]).
+    control: Mutex<ControlState>,
+    /// The camera's image size once it has been opened.
+    camera: Mutex<Option<CameraSize>>,
+    /// Bumped whenever any device's status changes (for the `devices` event).
+    devices_changed: tokio::sync::watch::Sender<u64>,
 }
 
 impl std::fmt::Debug for Command {
@@ -138,6 +177,8 @@ impl std::fmt::Debug for Command {
             Command::Scan(..) => "Scan",
             Command::Park(_) => "Park",
             Command::Reload(_) => "Reload",
+            Command::Control(..) => "Control",
+            Command::Reconnect(..) => "Reconnect",
         })
     }
 }
@@ -158,19 +199,26 @@ impl RigHandle {
         let thread_status = status.clone();
         let previews: PreviewWaiters = Arc::default();
         let thread_previews = previews.clone();
+        let shared = Arc::new(Shared {
+            control: Mutex::default(),
+            camera: Mutex::default(),
+            devices_changed: tokio::sync::watch::Sender::new(0),
+        });
+        let thread_shared = shared.clone();
         let join = std::thread::Builder::new().name("devices".into()).spawn(move || {
             DeviceThread {
                 config,
                 rig: None,
                 status: thread_status,
                 previews: thread_previews,
+                shared: thread_shared,
                 metrics,
                 ever_connected: false,
                 serial_ever_connected: false,
             }
             .run(rx)
         })?;
-        Ok((RigHandle { tx, status, previews }, join))
+        Ok((RigHandle { tx, status, previews, shared }, join))
     }
 
     /// A copy of every device's status.
@@ -187,6 +235,21 @@ impl RigHandle {
 
     /// Capture one frame and return it as PNG. Requests made while a capture is queued share it.
     pub async fn preview(&self) -> Result<Vec<u8>, RigError> {
+        let frame = self.capture().await?;
+        let encoded = tokio::task::spawn_blocking(move || {
+            let mut png = Vec::new();
+            frame
+                .image
+                .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+                .map(|()| png)
+                .map_err(RigError::Encode)
+        });
+        encoded.await.map_err(|_| RigError::Stopped)?
+    }
+
+    /// Capture one preview frame. Requests made while a capture is queued share it (one capture
+    /// for any number of waiting callers: PNG previews and every MJPEG viewer alike).
+    pub async fn capture(&self) -> Result<Arc<PreviewFrame>, RigError> {
         let (tx, rx) = oneshot::channel();
         {
             let mut waiters = self.previews.lock().unwrap_or_else(|p| p.into_inner());
@@ -202,9 +265,44 @@ impl RigHandle {
             }
         }
         match rx.await.map_err(|_| RigError::Stopped)? {
-            Ok(png) => Ok(Arc::unwrap_or_clone(png)),
+            Ok(frame) => Ok(frame),
             Err(e) => Err(RigError::Shared(e)),
         }
+    }
+
+    /// Run one manual control command on the device thread; answers the state it leaves.
+    pub async fn control(&self, cmd: ControlCommand) -> Result<ControlState, RigError> {
+        let (tx, rx) = oneshot::channel();
+        self.send(Command::Control(cmd, tx))?;
+        rx.await.map_err(|_| RigError::Stopped)?
+    }
+
+    /// The manual control state as last published (never waits for the device thread).
+    pub fn control_state(&self) -> ControlState {
+        self.shared.control.lock().map(|c| c.clone()).unwrap_or_default()
+    }
+
+    /// The camera's image size, once it has been opened.
+    pub fn camera_size(&self) -> Option<CameraSize> {
+        self.shared.camera.lock().ok().and_then(|c| *c)
+    }
+
+    /// Close the rig and open it again now. The devices are opened together (one rig file, one
+    /// simulated world, one serial board for table and lights), so reconnecting one reopens all;
+    /// `name` must be a device of the rig file. Resolves once the attempt is made; a failed
+    /// attempt leaves the device `disconnected` and retried with backoff as usual.
+    pub async fn reconnect(&self, name: &str) -> Result<(), RigError> {
+        if !self.status().iter().any(|d| d.name == name) {
+            return Err(RigError::UnknownDevice(name.to_owned()));
+        }
+        let (tx, rx) = oneshot::channel();
+        self.send(Command::Reconnect(name.to_owned(), tx))?;
+        rx.await.map_err(|_| RigError::Stopped)?
+    }
+
+    /// A receiver that changes whenever any device's status changes.
+    pub fn subscribe_devices(&self) -> tokio::sync::watch::Receiver<u64> {
+        self.shared.devices_changed.subscribe()
     }
 
     /// Run a scan; resolves when it has finished.
@@ -262,6 +360,7 @@ struct DeviceThread {
     rig: Option<Rig>,
     status: RigStatus,
     previews: PreviewWaiters,
+    shared: Arc<Shared>,
     metrics: Arc<Metrics>,
     ever_connected: bool,
     /// The serial board has answered at least once since the rig was built.
@@ -329,11 +428,34 @@ impl DeviceThread {
 
     /// Publish `state` for the devices `which` selects.
     fn set_where(&self, which: impl Fn(&DeviceStatus) -> bool, state: DeviceState, error: Option<String>) {
+        let mut changed = false;
         if let Ok(mut s) = self.status.lock() {
             for d in s.iter_mut().filter(|d| which(d)) {
+                changed |= d.state != state || d.last_error != error;
                 d.state = state;
                 d.last_error.clone_from(&error);
             }
+        }
+        if changed {
+            self.devices_changed();
+        }
+    }
+
+    /// Tell the `devices` event stream that some device's status changed.
+    fn devices_changed(&self) {
+        self.shared.devices_changed.send_modify(|n| *n += 1);
+    }
+
+    /// Publish the parked control state of the open rig (or an unknown angle without one).
+    fn publish_parked(&self) {
+        let state = match self.rig.as_ref() {
+            Some(rig) => ControlState::parked(rig),
+            None => {
+                ControlState { angle_deg: None, ..self.shared.control.lock().map(|c| c.clone()).unwrap_or_default() }
+            }
+        };
+        if let Ok(mut c) = self.shared.control.lock() {
+            *c = state;
         }
     }
 
@@ -360,6 +482,7 @@ impl DeviceThread {
                             if let Ok(mut s) = self.status.lock() {
                                 s.iter_mut().filter(|d| is_serial(d)).for_each(|d| d.reconnects += 1);
                             }
+                            self.devices_changed();
                             tracing::info!("serial board reconnected");
                         }
                         self.serial_ever_connected = true;
@@ -382,12 +505,7 @@ impl DeviceThread {
     }
 
     fn set_all(&self, state: DeviceState, error: Option<String>) {
-        if let Ok(mut s) = self.status.lock() {
-            for d in s.iter_mut() {
-                d.state = state;
-                d.last_error.clone_from(&error);
-            }
-        }
+        self.set_where(|_| true, state, error);
     }
 
     fn connect(&mut self) -> bool {
@@ -401,8 +519,14 @@ impl DeviceThread {
                     if let Ok(mut s) = self.status.lock() {
                         s.iter_mut().for_each(|d| d.reconnects += 1);
                     }
+                    self.devices_changed();
                 }
                 self.ever_connected = true;
+                if let (Ok(mut c), Some(rig)) = (self.shared.camera.lock(), self.rig.as_ref()) {
+                    let info = rig.camera.info();
+                    *c = Some(CameraSize { width: info.width, height: info.height });
+                }
+                self.publish_parked();
                 self.set_all(DeviceState::Connected, None);
                 tracing::info!("devices connected");
                 true
@@ -455,7 +579,7 @@ impl DeviceThread {
                 if waiters.is_empty() {
                     return;
                 }
-                let result: PreviewReply = self.preview().map(Arc::new).map_err(Arc::new);
+                let result: PreviewReply = self.capture().map(Arc::new).map_err(Arc::new);
                 for w in waiters {
                     let _ = w.send(result.clone());
                 }
@@ -478,27 +602,58 @@ impl DeviceThread {
                 }
                 self.rig = None;
                 self.status.lock().map(|mut s| *s = device_list(&config, DeviceState::Reconnecting, None)).ok();
+                self.devices_changed();
                 self.config = config;
             }
             Command::Scan(job, reply) => {
                 let result = self.scan(job);
+                // A scan ends parked (lights and lasers off, projector blank).
+                self.publish_parked();
                 let _ = reply.send(result);
+            }
+            Command::Control(cmd, reply) => {
+                let _ = reply.send(self.control(cmd));
+            }
+            Command::Reconnect(name, reply) => {
+                tracing::info!(device = %name, "reconnection asked for");
+                if let Some(rig) = self.rig.as_mut() {
+                    if let Err(e) = acquisition::park(rig, &self.config.scan) {
+                        tracing::warn!(error = %e, "parking before reconnecting failed");
+                    }
+                }
+                // Every driver is dropped (closing its device) before the rig is opened again.
+                self.rig = None;
+                if !self.connect() {
+                    tracing::warn!(device = %name, "reconnection failed; retrying with backoff");
+                }
+                let _ = reply.send(Ok(()));
             }
         }
     }
 
-    fn preview(&mut self) -> Result<Vec<u8>, RigError> {
+    fn control(&mut self, cmd: ControlCommand) -> Result<ControlState, RigError> {
+        let rig = self.rig.as_mut().ok_or(RigError::NotConnected)?;
+        let timeout = Duration::from_millis(self.config.scan.move_timeout_ms);
+        let mut state = self.shared.control.lock().map(|c| c.clone()).unwrap_or_default();
+        let result = control::apply(rig, &mut state, cmd, timeout);
+        if let Ok(mut c) = self.shared.control.lock() {
+            *c = state.clone();
+        }
+        match result {
+            Ok(()) => Ok(state),
+            Err(ControlError::Device(e)) => {
+                self.device_error(&e);
+                Err(RigError::Device(e))
+            }
+            Err(e) => Err(RigError::Control(e)),
+        }
+    }
+
+    fn capture(&mut self) -> Result<PreviewFrame, RigError> {
         let rig = self.rig.as_mut().ok_or(RigError::NotConnected)?;
         let timeout = Duration::from_millis(self.config.scan.capture_timeout_ms);
         match rig.camera.capture(timeout) {
-            Ok(frame) => {
-                let mut png = Vec::new();
-                frame
-                    .image
-                    .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-                    .map_err(RigError::Encode)?;
-                Ok(png)
-            }
+            Ok(frame) => Ok(PreviewFrame { sequence: frame.sequence, image: frame.image }),
             Err(e) => {
                 self.device_error(&e);
                 Err(RigError::Device(e))

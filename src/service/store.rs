@@ -377,8 +377,84 @@ impl ScanStore {
     }
 }
 
+impl ScanStore {
+    /// Remove scan `id`: its directory with every frame and result, and its memory copy. The
+    /// caller makes sure it is not running.
+    pub fn remove(&self, id: &str) -> Result<(), StoreError> {
+        self.get(id)?;
+        let dir = self.dir(id);
+        let mut memory = self.memory();
+        std::fs::remove_dir_all(&dir).map_err(|source| StoreError::Io { what: "cannot remove", path: dir, source })?;
+        memory.metas.remove(id);
+        memory.pending.remove(id);
+        Ok(())
+    }
+}
+
+/// A UTC calendar time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Civil {
+    /// Year.
+    pub year: i64,
+    /// Month, 1-12.
+    pub month: u32,
+    /// Day of the month, 1-31.
+    pub day: u32,
+    /// Hour, 0-23.
+    pub hour: u32,
+    /// Minute, 0-59.
+    pub minute: u32,
+    /// Second, 0-59.
+    pub second: u32,
+}
+
+/// Seconds since the Unix epoch as a UTC calendar time (proleptic Gregorian; Howard Hinnant's
+/// `civil_from_days`).
+pub fn civil(unix: u64) -> Civil {
+    let days = (unix / 86_400) as i64;
+    let rem = unix % 86_400;
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = (doy - (153 * mp + 2) / 5 + 1) as u32;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    Civil { year, month, day, hour: (rem / 3600) as u32, minute: (rem / 60 % 60) as u32, second: (rem % 60) as u32 }
+}
+
+/// Seconds since the Unix epoch as RFC 3339 UTC, e.g. `2026-12-02T01:02:04Z`.
+pub fn rfc3339(unix: u64) -> String {
+    let c = civil(unix);
+    format!("{:04}-{:02}-{:02}T{:02}:{:02}:{:02}Z", c.year, c.month, c.day, c.hour, c.minute, c.second)
+}
+
 #[cfg(test)]
 mod tests {
+    use super::*;
+
+    #[test]
+    fn unix_times_become_rfc3339() {
+        assert_eq!(rfc3339(0), "1970-01-01T00:00:00Z");
+        assert_eq!(rfc3339(951_782_400), "2000-02-29T00:00:00Z");
+        assert_eq!(rfc3339(1_796_173_324), "2026-12-02T01:02:04Z");
+    }
+
+    #[test]
+    fn removed_scans_are_gone_from_disk_and_list() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (store, _) = ScanStore::open(dir.path()).expect("open");
+        let a = store.create(&config(), None).expect("create");
+        std::fs::create_dir_all(store.dir(&a.id).join("frames")).expect("mkdir");
+        store.remove(&a.id).expect("remove");
+        assert!(!store.dir(&a.id).exists());
+        assert!(store.list().expect("list").is_empty());
+        assert!(matches!(store.get(&a.id), Err(StoreError::NotFound(_))));
+        assert!(matches!(store.remove(&a.id), Err(StoreError::NotFound(_))));
+    }
+
     use super::*;
 
     fn config() -> RigConfig {
