@@ -186,18 +186,26 @@ impl Browser {
         );
     }
 
+    /// Evaluate `js` in the page (awaiting a promise) and return its value, or the exception.
+    fn try_eval(&mut self, js: &str) -> Result<Value, Value> {
+        let r = self.call("Runtime.evaluate", json!({"expression": js, "returnByValue": true, "awaitPromise": true}));
+        match r.get("exceptionDetails") {
+            Some(e) => Err(e.clone()),
+            None => Ok(r["result"]["value"].clone()),
+        }
+    }
+
     /// Evaluate `js` in the page (awaiting a promise) and return its value.
     fn eval(&mut self, js: &str) -> Value {
-        let r = self.call("Runtime.evaluate", json!({"expression": js, "returnByValue": true, "awaitPromise": true}));
-        assert!(r.get("exceptionDetails").is_none(), "{js}: {r}");
-        r["result"]["value"].clone()
+        self.try_eval(js).unwrap_or_else(|e| panic!("{js}: {e}"))
     }
 
     /// Poll `js` (every 50 ms, receiving events meanwhile) until it is truthy; panics after `limit`.
     fn wait_js(&mut self, what: &str, limit: Duration, js: &str) -> Value {
         let t = Instant::now();
         loop {
-            let v = self.eval(js);
+            // Before the page has loaded (or rendered the element) the expression may throw.
+            let v = self.try_eval(js).unwrap_or(Value::Null);
             if !(v.is_null() || v == false || v == "" || v == 0) {
                 return v;
             }

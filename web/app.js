@@ -119,7 +119,7 @@ async function openScan(scan) {
     try {
       const g = await parsePly(await api(s.url));
       if (!g) continue;
-      if (s.as === "voxels" && !report) report = (await getJson("/scans/" + scan.id)).report;
+      if (s.as === "voxels" && !(report && report.voxel_size_m)) report = (await getJson("/scans/" + scan.id)).report;
       if (state.shownScan !== scan.id) return; // another model was asked for meanwhile
       viewer.show(g, s.as, { title: title + ": " + s.what, scanId: scan.id, voxelSize: report && report.voxel_size_m });
       return;
@@ -328,9 +328,14 @@ function renderDevices(list) {
     b.setAttribute("aria-label", "Reconnect the " + d.name);
     b.addEventListener("click", () => act(b, $("devices-msg"), () => post(`/devices/${encodeURIComponent(d.name)}/reconnect`),
       "Reconnecting the " + d.name + "…"));
-    const state = el("td", { textContent: words.deviceStateWords(d.state), className: "state-" + d.state });
-    return el("tr", {}, el("th", { scope: "row", textContent: d.name + " (" + d.kind + ")" }), state,
-      el("td", { textContent: d.last_error || "none" }), el("td", { textContent: String(d.reconnects ?? 0) }), el("td", {}, b));
+    const cell = (label, text, className = "") => {
+      const c = el("td", { textContent: text, className });
+      c.dataset.label = label;
+      return c;
+    };
+    return el("tr", {}, el("th", { scope: "row", textContent: d.name.replace(/_/g, " ") + " (" + d.kind + ")" }),
+      cell("State", words.deviceStateWords(d.state), "state-" + d.state), cell("Last error", d.last_error || "none"),
+      cell("Reconnects", String(d.reconnects ?? 0)), el("td", {}, b));
   }));
 }
 

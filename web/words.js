@@ -102,6 +102,9 @@ export function figureWords(r) {
   if (r.voxel_size_m != null) out.push("voxel " + (r.voxel_size_m * 1000).toFixed(2) + " mm");
   if (r.reprojection_iou_mean != null && r.reprojection_iou_mean > 0)
     out.push("silhouette agreement " + (100 * r.reprojection_iou_mean).toFixed(1) + " %");
+  if (r.bbox_mm && r.bbox_mm.length === 3) out.push(r.bbox_mm.map((v) => v.toFixed(0)).join(" × ") + " mm");
+  if (r.iou != null) out.push("overlap with the true shape " + (100 * r.iou).toFixed(1) + " %");
   if (r.chamfer_rel != null) out.push("shape error " + (100 * r.chamfer_rel).toFixed(2) + " % of size");
+  if (r.total_s != null) out.push("took " + durationWords(r.total_s));
   return out;
 }
