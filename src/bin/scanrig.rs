@@ -470,8 +470,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 anyhow::bail!("the options do not fit the stored scan:\n  {}", list.join("\n  "));
             }
             let mut reporter = Reporter::new(config.scan.positions as u64);
-            let report = scan::reprocess(&config, &scan_dir, &out, &CancelToken::new(), &mut |e| reporter.event(&e))
-                .with_context(|| format!("reprocessing {} failed", scan_dir.display()))?;
+            let report =
+                scan::reprocess(&config, &scan_dir, &out, &CancelToken::new(), &mut |e| reporter.event(&e), None)
+                    .with_context(|| format!("reprocessing {} failed", scan_dir.display()))?;
             reporter.finish();
             print_summary(&report);
             println!("results in {}", out.display());
@@ -754,6 +755,8 @@ impl Reporter {
             }
             (ScanEvent::Stage(s), Some(bar)) => bar.set_message(*s),
             (ScanEvent::Stage(s), None) => eprintln!("pipeline: {s}"),
+            // Live previews are for the daemon's viewers; the command line asks for none.
+            (ScanEvent::Preview { .. }, _) => {}
         }
     }
 

@@ -15,6 +15,7 @@ use nalgebra::Vector3;
 use super::flow::{Finish, FrameDir, PositionView, ScanFlow, ViewRecord};
 use super::methods::photo::Truth;
 use super::output::{self, OutputDir};
+use super::preview::LiveSpec;
 use super::report::{Report, Timings};
 use super::{ScanError, ScanEvent};
 use crate::acquisition::{AcquisitionError, AcquisitionSummary, CancelToken, Progress};
@@ -55,6 +56,9 @@ pub struct Job<'a> {
     pub cancel: &'a CancelToken,
     /// Progress sink.
     pub events: &'a mut dyn FnMut(ScanEvent),
+    /// Publish live previews of the estimate among the events (`None`: no previews, as on the
+    /// command line).
+    pub live: Option<LiveSpec>,
 }
 
 impl std::fmt::Debug for Job<'_> {
@@ -82,7 +86,8 @@ pub fn run_job(job: Job<'_>) -> Result<Report, ScanError> {
 /// Run `job` with `flow`; `world` is the simulated scene the result is compared with.
 pub(crate) fn drive<F: ScanFlow>(mut flow: F, job: Job<'_>, world: Option<SimWorld>) -> Result<Report, ScanError> {
     let started = Instant::now();
-    let Job { config, out, source, cancel, events } = job;
+    let Job { config, out, source, cancel, events, live } = job;
+    let mut publisher = live.map(Publisher::new);
     let recon = &config.reconstruction;
     let grid = VoxelGrid::from_resolution(&recon.bbox(), recon.resolution);
     let total = config.scan.positions as usize;
@@ -131,6 +136,9 @@ pub(crate) fn drive<F: ScanFlow>(mut flow: F, job: Job<'_>, world: Option<SimWor
         let view = flow.load(&frames, record)?;
         let message = flow.process(view, events)?;
         events(ScanEvent::ViewProcessed { position: record.position, total, message });
+        if let Some(p) = publisher.as_mut() {
+            p.offer(&flow, record.position, total, record.position + 1 == stored.len(), events);
+        }
         last_view_at = Instant::now();
     }
     if !stored.is_empty() {
@@ -158,6 +166,9 @@ pub(crate) fn drive<F: ScanFlow>(mut flow: F, job: Job<'_>, world: Option<SimWor
                 frames.write_json(&format!("{}.json", FrameDir::stem(record.position)), &record)?;
                 let message = flow.process(view, events)?;
                 events(ScanEvent::ViewProcessed { position: record.position, total, message });
+                if let Some(p) = publisher.as_mut() {
+                    p.offer(&flow, record.position, total, record.position + 1 == total, events);
+                }
                 Ok(())
             })?;
             timings.capture += capture_s;
@@ -259,4 +270,35 @@ fn acquire_and_process<V: Send>(
         return Err(e);
     }
     Ok((result.map_err(ScanError::Acquisition)?, busy_s))
+}
+
+/// When a job publishes its live previews: after a view, when [`LiveSpec::min_interval`] has passed
+/// since the last one, and always after the last view.
+struct Publisher {
+    spec: LiveSpec,
+    last: Option<Instant>,
+}
+
+impl Publisher {
+    fn new(spec: LiveSpec) -> Publisher {
+        Publisher { spec, last: None }
+    }
+
+    fn offer<F: ScanFlow>(
+        &mut self,
+        flow: &F,
+        position: usize,
+        total: usize,
+        last_view: bool,
+        events: &mut dyn FnMut(ScanEvent),
+    ) {
+        let due = last_view || self.last.is_none_or(|t| t.elapsed() >= self.spec.min_interval);
+        if !due {
+            return;
+        }
+        if let Some(cloud) = flow.preview(self.spec.max_points) {
+            events(ScanEvent::Preview { position, total, cloud: std::sync::Arc::new(cloud) });
+            self.last = Some(Instant::now());
+        }
+    }
 }

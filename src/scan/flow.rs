@@ -295,6 +295,13 @@ pub trait ScanFlow {
     /// the progress display ("carved, 12345 voxels left").
     fn process(&mut self, view: Self::View, events: &mut dyn FnMut(ScanEvent)) -> Result<String, ScanError>;
 
+    /// The current estimate as a compact point cloud for a live view (object frame, metres, at
+    /// most `max_points` points; see [`super::preview`]), or `None` while there is nothing to show.
+    /// Called between views, so it must cost little beside a view's processing.
+    fn preview(&self, _max_points: usize) -> Option<PointCloud> {
+        None
+    }
+
     /// Turn everything processed into the result.
     fn finish(self, finish: Finish<'_>) -> Result<Outcome, ScanError>;
 }

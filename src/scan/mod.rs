@@ -8,6 +8,7 @@ pub mod driver;
 pub mod flow;
 pub mod methods;
 pub mod output;
+pub mod preview;
 pub mod reconstruct;
 pub mod report;
 
@@ -166,6 +167,16 @@ pub enum ScanEvent {
     },
     /// The pipeline moved on to a stage of its own (`decoding`, `mesh`, `export`, `evaluate`).
     Stage(&'static str),
+    /// A live preview of the current estimate (only when the job asked for them, see
+    /// [`preview::LiveSpec`]): object frame, metres, at most `max_points` points.
+    Preview {
+        /// 0-based position of the last view it includes.
+        position: usize,
+        /// Positions in the plan.
+        total: usize,
+        /// The estimate.
+        cloud: std::sync::Arc<crate::pipeline::PointCloud>,
+    },
 }
 
 /// The silhouette parameters of a rig file.
@@ -183,17 +194,19 @@ pub fn run_scan(
     events: &mut dyn FnMut(ScanEvent),
 ) -> Result<Report, ScanError> {
     let mut rig = build_rig(config).map_err(ScanError::OpenDevices)?;
-    run_job(Job { config, out, source: Source::Rig { rig: &mut rig, resume: false }, cancel, events })
+    run_job(Job { config, out, source: Source::Rig { rig: &mut rig, resume: false }, cancel, events, live: None })
 }
 
 /// Reprocess the stored scan in `scan_dir` with `config` (its own `rig.toml`, possibly with other
-/// reconstruction settings) into `out`, without hardware; `cancel` stops it between views.
+/// reconstruction settings) into `out`, without hardware; `cancel` stops it between views; `live`
+/// asks for live previews of the estimate among the `events`.
 pub fn reprocess(
     config: &RigConfig,
     scan_dir: &Path,
     out: &Path,
     cancel: &CancelToken,
     events: &mut dyn FnMut(ScanEvent),
+    live: Option<preview::LiveSpec>,
 ) -> Result<Report, ScanError> {
-    run_job(Job { config, out, source: Source::Stored { scan_dir }, cancel, events })
+    run_job(Job { config, out, source: Source::Stored { scan_dir }, cancel, events, live })
 }

@@ -123,6 +123,7 @@ pub fn router(state: AppState) -> Router {
         .route("/scans/{id}/reprocess", post(reprocess_scan))
         .route("/methods", get(list_methods))
         .route("/scans/{id}/files/{*path}", get(scan_file))
+        .route("/scans/{id}/live.ply", get(live_model))
         .route("/events", get(events))
         .route("/preview", get(preview))
         // The console (issue 16): live camera, manual control, scan management.
@@ -376,6 +377,27 @@ async fn scan_file(State(s): State<AppState>, Path((id, path)): Path<(String, St
         .into_response())
 }
 
+/// The latest live estimate of scan `id` as binary PLY (see [`crate::service::jobs::LiveModel`]).
+async fn live_model(State(s): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
+    s.jobs.store().get(&id)?;
+    let model = s
+        .jobs
+        .live_model(&id)
+        .ok_or_else(|| ApiError::new(StatusCode::NOT_FOUND, "not_found", format!("scan {id} has no live estimate")))?;
+    let version = HeaderValue::from(model.version);
+    Ok((
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
+            (header::HeaderName::from_static("x-model-version"), version),
+            (header::CACHE_CONTROL, HeaderValue::from_static("no-store")),
+        ],
+        model.ply,
+    )
+        .into_response())
+}
+
+/// Server-sent events: `progress` (the snapshot, first at once, then on every change) and `model`
+/// (a new live estimate: scan id, version, position, point count).
 async fn events(State(s): State<AppState>) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
     let rx = s.jobs.subscribe();
     let first = futures_util::stream::once({
@@ -387,8 +409,21 @@ async fn events(State(s): State<AppState>) -> Sse<impl Stream<Item = Result<Even
         let p = rx.borrow_and_update().clone();
         Some((Ok(Event::default().event("progress").json_data(&p).unwrap_or_default()), rx))
     });
-    let stream = futures_util::stream::select(first.chain(updates), console::device_events(&s))
-        .take_until(s.shutdown.clone().cancelled_owned());
+    // Only the newest estimate matters: a slow client skips versions, never queues them.
+    let models = futures_util::stream::unfold(s.jobs.subscribe_live(), |mut rx| async move {
+        loop {
+            rx.changed().await.ok()?;
+            let m = rx.borrow_and_update().clone();
+            if let Some(m) = m {
+                return Some((Ok(Event::default().event("model").json_data(&m).unwrap_or_default()), rx));
+            }
+        }
+    });
+    let stream = futures_util::stream::select(
+        futures_util::stream::select(first.chain(updates), models),
+        console::device_events(&s),
+    )
+    .take_until(s.shutdown.clone().cancelled_owned());
     Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(10)))
 }
 

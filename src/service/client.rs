@@ -156,9 +156,15 @@ impl Client {
         self.request("POST", path, Some(&bytes))?.json()
     }
 
-    /// Follow the progress event stream, calling `on_event` with each event's JSON data until it
-    /// returns `false` or the stream ends.
+    /// Follow the progress event stream, calling `on_event` with each `progress` event's JSON data
+    /// until it returns `false` or the stream ends.
     pub fn watch(&self, mut on_event: impl FnMut(&serde_json::Value) -> bool) -> Result<(), ClientError> {
+        self.watch_events(|name, v| name != "progress" || on_event(v))
+    }
+
+    /// Follow the event stream, calling `on_event` with each event's name (`progress`, `model`, ...)
+    /// and JSON data until it returns `false` or the stream ends.
+    pub fn watch_events(&self, mut on_event: impl FnMut(&str, &serde_json::Value) -> bool) -> Result<(), ClientError> {
         let stream = self.send("GET", "/api/v1/events", None, "text/event-stream")?;
         let mut reader = BufReader::new(stream);
         let (status, headers) = read_head(&mut reader).map_err(|e| e.with_addr(self.addr))?;
@@ -173,6 +179,7 @@ impl Client {
         let body: Box<dyn Read> = if chunked { Box::new(ChunkedReader::new(reader)) } else { Box::new(reader) };
         let mut lines = BufReader::new(body);
         let mut data = String::new();
+        let mut name = String::new();
         let mut line = String::new();
         loop {
             line.clear();
@@ -182,10 +189,16 @@ impl Client {
             let l = line.trim_end_matches(['\r', '\n']);
             if let Some(d) = l.strip_prefix("data:") {
                 data.push_str(d.trim_start());
+            } else if let Some(n) = l.strip_prefix("event:") {
+                n.trim_start().clone_into(&mut name);
             } else if l.is_empty() && !data.is_empty() {
                 let v: serde_json::Value = serde_json::from_str(&data).map_err(ClientError::Json)?;
                 data.clear();
-                if !on_event(&v) {
+                // An event without a name is a `message` (the SSE default).
+                let event = if name.is_empty() { "message" } else { name.as_str() };
+                let more = on_event(event, &v);
+                name.clear();
+                if !more {
                     return Ok(());
                 }
             }

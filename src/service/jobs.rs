@@ -14,6 +14,7 @@ use tokio::sync::watch;
 
 use crate::acquisition::{AcquisitionError, CancelToken};
 use crate::config::{Method, RigConfig};
+use crate::scan::preview::LiveSpec;
 use crate::scan::{ScanError, ScanEvent};
 
 use super::metrics::Metrics;
@@ -39,6 +40,23 @@ pub struct ProgressSnapshot {
     pub elapsed_s: f64,
     /// Estimated seconds until the views are all captured, from the pace so far.
     pub remaining_s: Option<f64>,
+}
+
+/// The latest live estimate of the running (or last-run) job, as announced on the event stream
+/// (event `model`); its points are served as binary PLY (`GET /api/v1/scans/{id}/live.ply`).
+#[derive(Debug, Clone, Serialize)]
+pub struct LiveModel {
+    /// The scan it belongs to.
+    pub scan_id: String,
+    /// Counts the previews of this scan from 1.
+    pub version: u64,
+    /// 0-based position of the last view it includes.
+    pub position: usize,
+    /// Points in it.
+    pub points: usize,
+    /// The cloud as binary little-endian PLY (object frame, metres).
+    #[serde(skip)]
+    pub ply: axum::body::Bytes,
 }
 
 /// What a client may ask for when starting a scan; missing fields take the rig file's values. The
@@ -172,6 +190,7 @@ pub struct Jobs {
     rig: RigHandle,
     metrics: Arc<Metrics>,
     progress: Arc<watch::Sender<ProgressSnapshot>>,
+    live: Arc<watch::Sender<Option<LiveModel>>>,
     active: Arc<Mutex<Option<Active>>>,
     shutting_down: Arc<AtomicBool>,
 }
@@ -191,6 +210,7 @@ impl Jobs {
             rig,
             metrics,
             progress: Arc::new(progress),
+            live: Arc::new(watch::channel(None).0),
             active: Arc::new(Mutex::new(None)),
             shutting_down: Arc::new(AtomicBool::new(false)),
         }
@@ -204,6 +224,16 @@ impl Jobs {
     /// Subscribe to progress.
     pub fn subscribe(&self) -> watch::Receiver<ProgressSnapshot> {
         self.progress.subscribe()
+    }
+
+    /// Subscribe to the live estimates.
+    pub fn subscribe_live(&self) -> watch::Receiver<Option<LiveModel>> {
+        self.live.subscribe()
+    }
+
+    /// The latest live estimate of scan `id`, if it has one.
+    pub fn live_model(&self, id: &str) -> Option<LiveModel> {
+        self.live.borrow().as_ref().filter(|m| m.scan_id == id).cloned()
     }
 
     /// The latest progress.
@@ -397,12 +427,14 @@ impl Jobs {
             elapsed_s: 0.0,
             remaining_s: None,
         });
-        let events = progress_sink(self.progress.clone(), self.metrics.clone(), started);
+        self.live.send_replace(None);
+        let events = progress_sink(self.progress.clone(), self.live.clone(), id.clone(), self.metrics.clone(), started);
+        let live = Some(LiveSpec::default());
         let out = self.store.dir(&id);
         let this = self.clone();
         match work {
             Work::Scan { config, resume } => {
-                let job = ScanJob { out, resume, config: Arc::new(config), cancel, events };
+                let job = ScanJob { out, resume, config: Arc::new(config), cancel, events, live };
                 tokio::spawn(async move {
                     let result = this.rig.scan(job).await;
                     this.finish(&id, result, pause.load(Ordering::SeqCst), started);
@@ -412,7 +444,8 @@ impl Jobs {
                 tokio::spawn(async move {
                     let job = tokio::task::spawn_blocking(move || {
                         let mut events = events;
-                        crate::scan::reprocess(&config, &source, &out, &cancel, &mut *events).map_err(RigError::Scan)
+                        crate::scan::reprocess(&config, &source, &out, &cancel, &mut *events, live)
+                            .map_err(RigError::Scan)
                     });
                     let result = job.await.unwrap_or(Err(RigError::Stopped));
                     this.finish(&id, result, pause.load(Ordering::SeqCst), started);
@@ -478,13 +511,29 @@ fn views_serve(stored: Method, wanted: Method) -> bool {
 }
 
 /// The progress sink of a job: turns scan events into the published snapshot.
+/// Live previews go to `live`, as the estimate of scan `scan_id`.
 fn progress_sink(
     progress: Arc<watch::Sender<ProgressSnapshot>>,
+    live: Arc<watch::Sender<Option<LiveModel>>>,
+    scan_id: String,
     metrics: Arc<Metrics>,
     started: Instant,
 ) -> Box<dyn FnMut(ScanEvent) + Send> {
     let mut first_new: Option<(usize, Instant)> = None;
+    let mut version = 0;
     Box::new(move |e: ScanEvent| {
+        if let ScanEvent::Preview { position, cloud, .. } = &e {
+            version += 1;
+            let model = LiveModel {
+                scan_id: scan_id.clone(),
+                version,
+                position: *position,
+                points: cloud.len(),
+                ply: axum::body::Bytes::from(cloud.ply_bytes()),
+            };
+            live.send_replace(Some(model));
+            return;
+        }
         progress.send_modify(|p| {
             p.elapsed_s = started.elapsed().as_secs_f64();
             match &e {
@@ -506,6 +555,7 @@ fn progress_sink(
                         p.remaining_s = Some(per * p.total.saturating_sub(p.step) as f64);
                     }
                 }
+                ScanEvent::Preview { .. } => {}
                 ScanEvent::Stage(s) => {
                     p.stage = (*s).to_owned();
                     if p.step >= p.total {

@@ -133,6 +133,8 @@ pub struct ScanJob {
     pub cancel: CancelToken,
     /// Progress sink, called on the device thread.
     pub events: Box<dyn FnMut(ScanEvent) + Send>,
+    /// Live previews of the estimate among the events.
+    pub live: Option<scan::preview::LiveSpec>,
 }
 
 impl std::fmt::Debug for ScanJob {
@@ -671,6 +673,7 @@ impl DeviceThread {
             source: scan::Source::Rig { rig, resume: job.resume },
             cancel: &job.cancel,
             events: &mut *job.events,
+            live: job.live,
         });
         if let Err(ScanError::Acquisition(crate::acquisition::AcquisitionError::Device { source, .. })) = &result {
             self.device_error(source);

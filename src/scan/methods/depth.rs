@@ -7,6 +7,7 @@
 //! ([`DEPTH_UNITS_PER_M`]; 0 = none). Depth is quantised to that unit before it is fused, so a
 //! resumed or reprocessed scan fuses exactly the maps a live one did.
 
+use crate::scan::preview;
 use std::time::Instant;
 
 use crate::acquisition::{self, DepthView};
@@ -168,6 +169,11 @@ impl ScanFlow for DepthFlow {
         self.timings.carve += t.elapsed().as_secs_f64();
         self.views.push((cam, mask));
         Ok(format!("fused: {} voxels updated", stats.updated))
+    }
+
+    /// The voxels next to the fused surface (the TSDF's zero crossing).
+    fn preview(&self, max_points: usize) -> Option<crate::pipeline::PointCloud> {
+        preview::from_tsdf(&self.tsdf, self.fusion.truncation_m, max_points)
     }
 
     fn finish(self, finish: Finish<'_>) -> Result<Outcome, ScanError> {

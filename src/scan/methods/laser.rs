@@ -20,6 +20,7 @@
 //! The laser planes are the rig file's `[[lights.laser]]` planes (calibrated ones go there; see
 //! [`crate::pipeline::laser::calibrate_laser_plane`]).
 
+use crate::scan::preview;
 use std::time::Instant;
 
 use nalgebra::Vector3;
@@ -289,6 +290,11 @@ impl ScanFlow for LaserFlow {
         self.views += 1;
         let added = self.acc.points.len() - before;
         Ok(format!("triangulated: {added} points ({} in all)", self.acc.points.len()))
+    }
+
+    /// The points triangulated so far, in their surface colours.
+    fn preview(&self, max_points: usize) -> Option<PointCloud> {
+        preview::from_points(&self.acc.points, Some(&self.acc.colors), max_points)
     }
 
     fn finish(self, finish: Finish<'_>) -> Result<Outcome, ScanError> {

@@ -6,6 +6,7 @@
 //!
 //! Frames are stored as `frames/pos_NNN_ambient.png` and `frames/pos_NNN_light_K.png`.
 
+use crate::scan::preview;
 use std::time::Instant;
 
 use image::RgbImage;
@@ -229,6 +230,11 @@ impl ScanFlow for ShadowFlow {
         }
         self.views.push((cam, silhouette));
         Ok(format!("carved: {} voxels left, {shadows} shadow pixels", stats.occupied))
+    }
+
+    /// The visual hull carved so far (the shadows carve it further at the end).
+    fn preview(&self, max_points: usize) -> Option<crate::pipeline::PointCloud> {
+        preview::from_occupancy(self.carver.occupancy(), max_points)
     }
 
     fn finish(self, finish: Finish<'_>) -> Result<Outcome, ScanError> {

@@ -3,6 +3,7 @@
 //! `space-carving-photo` (see [`super::photo`]). One fresh frame per turntable position with the
 //! plan's lights on, stored as `frames/pos_NNN.png`.
 
+use crate::scan::preview;
 use std::time::Instant;
 
 use image::RgbImage;
@@ -115,6 +116,11 @@ impl ScanFlow for SilhouetteFlow {
             self.images.push(view.frame.image);
         }
         Ok(format!("carved: {} voxels left", stats.occupied))
+    }
+
+    /// The visual hull carved so far (the photo methods refine it at the end).
+    fn preview(&self, max_points: usize) -> Option<crate::pipeline::PointCloud> {
+        preview::from_occupancy(self.carver.occupancy(), max_points)
     }
 
     fn finish(self, finish: Finish<'_>) -> Result<Outcome, ScanError> {

@@ -23,6 +23,7 @@
 //! the measured projector response, when compensation is on, as `frames/prepare.json`, so a scan can
 //! be resumed and its captures decoded again with other settings.
 
+use crate::scan::preview;
 use std::time::Instant;
 
 use super::frame_name;
@@ -749,6 +750,11 @@ impl ScanFlow for StructuredLightFlow {
         }
         tracing::debug!(position, decoded = range.decoded, total_points = self.cloud.len(), "view triangulated");
         Ok(format!("triangulated: {} pixels decoded, {points} points", range.decoded))
+    }
+
+    /// The points triangulated so far.
+    fn preview(&self, max_points: usize) -> Option<PointCloud> {
+        preview::from_points(self.cloud.points(), self.cloud.colors(), max_points)
     }
 
     fn finish(mut self, finish: Finish<'_>) -> Result<Outcome, ScanError> {
