@@ -58,11 +58,13 @@ const post = (path, json) => api(path, { method: "POST", json: json === undefine
 async function act(button, out, f, done) {
   button.disabled = true;
   out.textContent = "";
+  out.classList.remove("error");
   try {
     const r = await f();
     if (done) out.textContent = typeof done === "function" ? done(r) : done;
   } catch (e) {
     out.textContent = e.message;
+    out.classList.add("error");
   } finally {
     button.disabled = false;
     applyRunning();
@@ -327,7 +329,7 @@ function renderDevices(list) {
     const b = el("button", { type: "button", textContent: "Reconnect", id: "reconnect-" + d.name });
     b.setAttribute("aria-label", "Reconnect the " + d.name);
     b.addEventListener("click", () => act(b, $("devices-msg"), () => post(`/devices/${encodeURIComponent(d.name)}/reconnect`),
-      "Reconnecting the " + d.name + "…"));
+      "Reconnect of the " + d.name.replace(/_/g, " ") + " requested."));
     const cell = (label, text, className = "") => {
       const c = el("td", { textContent: text, className });
       c.dataset.label = label;
@@ -369,9 +371,14 @@ async function fillFigures(scan) {
 function scanCard(s) {
   const id = s.id, title = words.methodWords(s.method) + ", " + words.dateWords(s.created_unix, s.created);
   const busy = s.status === "running";
-  const thumb = el("img", { className: "thumb", alt: "", width: 120, height: 90, loading: "lazy" });
-  if (s.status !== "running" || s.positions) thumb.src = `/api/v1/scans/${id}/thumbnail.jpg`;
-  thumb.addEventListener("error", () => thumb.replaceWith(el("div", { className: "thumb none", textContent: "no picture" })));
+  // A reprocessed scan shows its source's first view; a running one has none to show yet.
+  const pictured = s.reprocess_of ? state.scans.find((x) => x.id === s.reprocess_of) : s;
+  const noPicture = () => el("div", { className: "thumb none", textContent: "no picture" });
+  let thumb = noPicture();
+  if (pictured && pictured.status !== "running" && !pictured.reprocess_of) {
+    thumb = el("img", { className: "thumb", alt: "", width: 120, height: 90, src: `/api/v1/scans/${pictured.id}/thumbnail.jpg` });
+    thumb.addEventListener("error", () => thumb.replaceWith(noPicture()));
+  }
   const status = words.statusWords(s.status) + (s.error ? ": " + s.error : "") + (s.reprocess_of ? " (reprocessed from " + s.reprocess_of + ")" : "");
   const out = el("p", { className: "card-msg", role: "status" });
   const open = el("button", { type: "button", textContent: "Open in 3D view", className: "open" });

@@ -143,7 +143,9 @@ export class Viewer {
     } else if (kind === "voxels") {
       object = this.voxels(geometry, info.voxelSize || 0.002, colours);
     } else {
-      const pointSize = info.pointSize || Math.max(0.0008, size.length() / 250);
+      // About the spacing of n points spread over the surface of a box this size.
+      const n = geometry.getAttribute("position").count, extent = Math.max(size.x, size.y, size.z, 0.01);
+      const pointSize = info.pointSize || Math.min(extent / 20, Math.max(0.0006, 0.8 * extent * Math.sqrt(6 / Math.max(n, 1))));
       object = new THREE.Points(geometry, new THREE.PointsMaterial({
         size: pointSize, vertexColors: colours, color: colours ? 0xffffff : (info.live ? LIVE_COLOUR : MODEL_GREY),
       }));

@@ -80,7 +80,10 @@ export function progressWords(p) {
   const repeats = msg === p.status || (p.status !== "running" && msg === p.stage);
   if (msg && !repeats) line += ": " + msg;
   if (p.status === "running" && p.remaining_s != null) line += ". About " + durationWords(p.remaining_s) + " left";
-  if (p.status !== "running" && p.elapsed_s) line += " after " + durationWords(p.elapsed_s);
+  if (p.total && ["paused", "cancelled", "failed", "interrupted"].includes(p.status))
+    line += " after view " + Math.min(p.step, p.total) + " of " + p.total;
+  if (p.status === "complete" && p.elapsed_s) line += " in " + durationWords(p.elapsed_s);
+  else if (p.status !== "running" && p.elapsed_s) line += " (" + durationWords(p.elapsed_s) + " of scanning)";
   return line + ".";
 }
 
@@ -102,7 +105,6 @@ export function figureWords(r) {
   if (r.voxel_size_m != null) out.push("voxel " + (r.voxel_size_m * 1000).toFixed(2) + " mm");
   if (r.reprojection_iou_mean != null && r.reprojection_iou_mean > 0)
     out.push("silhouette agreement " + (100 * r.reprojection_iou_mean).toFixed(1) + " %");
-  if (r.bbox_mm && r.bbox_mm.length === 3) out.push(r.bbox_mm.map((v) => v.toFixed(0)).join(" × ") + " mm");
   if (r.iou != null) out.push("overlap with the true shape " + (100 * r.iou).toFixed(1) + " %");
   if (r.chamfer_rel != null) out.push("shape error " + (100 * r.chamfer_rel).toFixed(2) + " % of size");
   if (r.total_s != null) out.push("took " + durationWords(r.total_s));
