@@ -142,6 +142,7 @@ pub fn router(state: AppState) -> Router {
         .nest("/api/v1", api)
         .route("/metrics", get(metrics))
         .route("/", get(page))
+        .route("/web/{*path}", get(web_file))
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "not_found", "no such route") })
         .layer(axum::middleware::from_fn_with_state(state.clone(), guard))
         .layer(DefaultBodyLimit::max(MAX_BODY))
@@ -465,6 +466,13 @@ async fn metrics(State(s): State<AppState>) -> Response {
 
 async fn page() -> Response {
     ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], include_str!("../../web/index.html")).into_response()
+}
+
+/// A file of the web console (`web/`, embedded at build time); 404 for anything not in the list.
+async fn web_file(Path(path): Path<String>) -> Result<Response, ApiError> {
+    let file = super::web::lookup(&path)
+        .ok_or_else(|| ApiError::new(StatusCode::NOT_FOUND, "not_found", format!("no web file `{path}`")))?;
+    Ok(([(header::CONTENT_TYPE, file.content_type), (header::CACHE_CONTROL, "no-cache")], file.bytes).into_response())
 }
 
 #[cfg(test)]

@@ -20,6 +20,7 @@ pub mod rig;
 pub mod state_lock;
 pub mod store;
 pub mod token;
+pub mod web;
 
 use std::future::Future;
 use std::net::SocketAddr;
