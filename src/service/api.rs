@@ -261,7 +261,8 @@ async fn get_scan(State(s): State<AppState>, Path(id): Path<String>) -> Result<J
     let frames = std::fs::read_dir(dir.join("frames"))
         .map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".png")).count())
         .unwrap_or(0);
-    Ok(Json(json!({ "scan": meta, "frames": frames, "report": report })))
+    let replication = s.jobs.replication().and_then(|q| q.status(&id));
+    Ok(Json(json!({ "scan": meta, "frames": frames, "report": report, "replication": replication })))
 }
 
 async fn pause_scan(State(s): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, ApiError> {

@@ -172,6 +172,8 @@ pub struct Jobs {
     progress: Arc<watch::Sender<ProgressSnapshot>>,
     active: Arc<Mutex<Option<Active>>>,
     shutting_down: Arc<AtomicBool>,
+    /// The replication queue every completed scan goes into, when replication is configured.
+    replication: Option<Arc<super::replication::Queue>>,
 }
 
 impl std::fmt::Debug for Jobs {
@@ -191,7 +193,19 @@ impl Jobs {
             progress: Arc::new(progress),
             active: Arc::new(Mutex::new(None)),
             shutting_down: Arc::new(AtomicBool::new(false)),
+            replication: None,
         }
+    }
+
+    /// Put every scan that completes from now on into `queue`.
+    pub fn with_replication(mut self, queue: Arc<super::replication::Queue>) -> Jobs {
+        self.replication = Some(queue);
+        self
+    }
+
+    /// The replication queue, when replication is configured.
+    pub fn replication(&self) -> Option<&Arc<super::replication::Queue>> {
+        self.replication.as_ref()
     }
 
     /// The store.
@@ -429,6 +443,9 @@ impl Jobs {
         let mut active = self.active.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         if let Err(e) = self.store.set_status(id, status, error.clone()) {
             tracing::error!(scan = id, error = %error_chain(&e), "cannot record the scan's status");
+        }
+        if let (ScanStatus::Complete, Some(queue)) = (status, &self.replication) {
+            queue.enqueue(id);
         }
         *active = None;
         drop(active);
