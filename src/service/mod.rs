@@ -159,7 +159,7 @@ pub async fn run(
     }
     let metrics = Arc::new(metrics::Metrics::default());
     let settings = replication_settings(&opts, &config)?;
-    let _ = metrics.rig.set(settings.as_ref().map_or(&config.rig.name, |(r, _)| r.rig_folder(&config.rig.name)).clone());
+    let _ = metrics.rig.set(settings.as_ref().map_or(config.rig.name.as_str(), |(r, _)| r.rig_folder(&config.rig.name)).to_owned());
     let store = Arc::new(store);
     #[cfg(feature = "s3")]
     let replication = settings
