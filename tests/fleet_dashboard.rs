@@ -61,9 +61,8 @@ struct Names {
     grouping: Vec<String>,
 }
 
-const KEYWORDS: &[&str] = &[
-    "by", "without", "on", "ignoring", "group_left", "group_right", "bool", "and", "or", "unless", "offset",
-];
+const KEYWORDS: &[&str] =
+    &["by", "without", "on", "ignoring", "group_left", "group_right", "bool", "and", "or", "unless", "offset"];
 
 fn scan_query(q: &str) -> Names {
     let b: Vec<char> = q.chars().collect();

@@ -92,18 +92,18 @@ impl S3Server {
 }
 
 /// A private credentials file.
-fn credentials_file(dir: &Path, secret: &str) -> PathBuf {
+fn credentials_file(dir: &Path, key_id: &str, secret: &str) -> PathBuf {
     use std::os::unix::fs::PermissionsExt;
     let p = dir.join("credentials");
-    std::fs::write(&p, format!("[default]\naws_access_key_id = S3RVER\naws_secret_access_key = {secret}\n"))
+    std::fs::write(&p, format!("[default]\naws_access_key_id = {key_id}\naws_secret_access_key = {secret}\n"))
         .expect("credentials");
     std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o600)).expect("chmod");
     p
 }
 
 /// A replication file for `server`; `extra` lines are appended.
-fn replication_file(dir: &Path, server: &S3Server, secret: &str, extra: &str) -> PathBuf {
-    credentials_file(dir, secret);
+fn replication_file(dir: &Path, server: &S3Server, key_id: &str, secret: &str, extra: &str) -> PathBuf {
+    credentials_file(dir, key_id, secret);
     let p = dir.join("replication.toml");
     std::fs::write(
         &p,
@@ -185,7 +185,8 @@ fn assert_replica_equals(objects: &BTreeMap<String, Vec<u8>>, scan_key: &str, lo
     }
     let manifest: serde_json::Value =
         serde_json::from_slice(&objects[&format!("{scan_key}/manifest.json")]).expect("manifest");
-    let listed: Vec<&str> = manifest["files"].as_array().expect("files").iter().filter_map(|f| f["path"].as_str()).collect();
+    let listed: Vec<&str> =
+        manifest["files"].as_array().expect("files").iter().filter_map(|f| f["path"].as_str()).collect();
     assert_eq!(listed, local.keys().map(String::as_str).collect::<Vec<_>>());
     for f in manifest["files"].as_array().expect("files") {
         let p = f["path"].as_str().expect("path");
@@ -198,7 +199,7 @@ fn assert_replica_equals(objects: &BTreeMap<String, Vec<u8>>, scan_key: &str, lo
 fn a_scan_replicates_byte_for_byte_and_reprocesses_from_the_bucket_as_from_disk() {
     let dir = tempfile::tempdir().expect("tempdir");
     let Some(server) = S3Server::start(&dir.path().join("s3")) else { return };
-    let settings = replication_file(dir.path(), &server, "S3RVER", "");
+    let settings = replication_file(dir.path(), &server, "S3RVER", "S3RVER", "");
     let state = dir.path().join("state");
     let d = spawn_with(&rig(dir.path()), &state, dir.path(), &["--replication", settings.to_str().expect("utf8")], &[]);
     let c = client(&d);
@@ -258,7 +259,13 @@ fn server_killed_and_daemon_crashed_mid_upload_resume_with_nothing_lost_or_dupli
     let dir = tempfile::tempdir().expect("tempdir");
     let Some(mut server) = S3Server::start(&dir.path().join("s3")) else { return };
     // 192 KiB/s: the scan (about 2 MB) takes seconds to upload, so both kills land mid-upload.
-    let settings = replication_file(dir.path(), &server, "S3RVER", "max_rate_kib_per_s = 192\nprune = \"frames_after_verified\"\n");
+    let settings = replication_file(
+        dir.path(),
+        &server,
+        "S3RVER",
+        "S3RVER",
+        "max_rate_kib_per_s = 192\nprune = \"frames_after_verified\"\n",
+    );
     let state = dir.path().join("state");
     let rig = rig(dir.path());
     let args = ["--replication", settings.to_str().expect("utf8")];
@@ -288,8 +295,8 @@ fn server_killed_and_daemon_crashed_mid_upload_resume_with_nothing_lost_or_dupli
     let _ = d.child.wait();
     let queue: serde_json::Value =
         serde_json::from_slice(&std::fs::read(state.join("replication/queue.json")).expect("queue")).expect("json");
-    let verified = queue["scans"][0]["files"].as_array().expect("files").iter().filter(|f| f["verified"] == true).count()
-        as u64;
+    let verified =
+        queue["scans"][0]["files"].as_array().expect("files").iter().filter(|f| f["verified"] == true).count() as u64;
     assert!(verified > done_before && verified < n, "verified {verified} of {n}");
     let d = spawn_with(&rig, &state, dir.path(), &args, &[]);
     let c = client(&d);
@@ -312,8 +319,10 @@ fn server_killed_and_daemon_crashed_mid_upload_resume_with_nothing_lost_or_dupli
 fn wrong_credentials_show_a_clear_error_keep_the_scan_and_never_show_the_secret() {
     let dir = tempfile::tempdir().expect("tempdir");
     let Some(server) = S3Server::start(&dir.path().join("s3")) else { return };
+    // s3rver checks the access key id (an unknown one is refused: InvalidAccessKeyId) but not the
+    // SigV4 signature, so the wrong credential here is a key id the server does not know.
     let secret = "wrong-Secret-7f3a9c";
-    let settings = replication_file(dir.path(), &server, secret, "prune = \"frames_after_verified\"\n");
+    let settings = replication_file(dir.path(), &server, "NOT-A-KEY", secret, "prune = \"frames_after_verified\"\n");
     let state = dir.path().join("state");
     let d = spawn_with(
         &rig(dir.path()),
@@ -325,12 +334,17 @@ fn wrong_credentials_show_a_clear_error_keep_the_scan_and_never_show_the_secret(
     let c = client(&d);
     let id = start_scan(&c);
     assert_eq!(wait_finished(&c, &id, Duration::from_secs(60))["status"], "complete");
-    wait_for("two failed attempts", Duration::from_secs(30), || replication(&c, &id)["attempts"].as_u64() >= Some(2));
+    let t = Instant::now();
+    while replication(&c, &id)["attempts"].as_u64() < Some(2) {
+        assert!(t.elapsed() < Duration::from_secs(30), "no two failed attempts: {}\n{}", replication(&c, &id), d.log());
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let r = replication(&c, &id);
     assert_eq!(r["state"], "failed", "{r}");
     let error = r["error"].as_str().expect("error");
+    eprintln!("status of a refused credential: {r}");
     assert!(error.contains("the server refused the credentials"), "{error}");
-    assert!(error.contains("SignatureDoesNotMatch"), "{error}");
+    assert!(error.contains("InvalidAccessKeyId"), "{error}");
     assert_eq!(r["files_done"], 0, "{r}");
     assert!(metric(&c, "scanrig_replication_failures_total") >= 2);
     assert_eq!(metric(&c, "scanrig_replication_failing"), 1);
@@ -341,7 +355,7 @@ fn wrong_credentials_show_a_clear_error_keep_the_scan_and_never_show_the_secret(
     let good = dir.path().join("good");
     std::fs::create_dir_all(&good).expect("mkdir");
     let cfg: ReplicationConfig = scanrig::config::replication::load_file(&settings).expect("settings");
-    let creds = Credentials::from_file(&credentials_file(&good, "S3RVER"), "default").expect("credentials");
+    let creds = Credentials::from_file(&credentials_file(&good, "S3RVER", "S3RVER"), "default").expect("credentials");
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().expect("runtime");
     let listed = rt.block_on(Archive::open(&cfg, &creds).expect("client").list("lab")).expect("list");
     assert_eq!(listed, vec![], "objects uploaded with a refused credential");
@@ -355,4 +369,20 @@ fn wrong_credentials_show_a_clear_error_keep_the_scan_and_never_show_the_secret(
     );
     assert!(d.log().contains("replication attempt failed"), "{}", d.log());
     assert!(!everything.contains(secret), "the secret leaked");
+
+    // A bucket that does not exist, from the CLI: a clear error naming it.
+    let url = format!("s3://no-such-bucket/lab/simulated/{id}");
+    let out = Command::new(env!("CARGO_BIN_EXE_scanrig"))
+        .args(["reconstruct", "--scan", &url, "--out"])
+        .arg(dir.path().join("never"))
+        .env("AWS_ENDPOINT_URL", server.endpoint())
+        .env("AWS_ALLOW_HTTP", "true")
+        .env("AWS_ACCESS_KEY_ID", "S3RVER")
+        .env("AWS_SECRET_ACCESS_KEY", secret)
+        .output()
+        .expect("scanrig");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(stderr.contains("the bucket does not exist") && stderr.contains("no-such-bucket"), "{stderr}");
+    assert!(!stderr.contains(secret), "{stderr}");
 }

@@ -21,8 +21,8 @@ use futures_util::StreamExt;
 use object_store::aws::{AmazonS3, AmazonS3Builder};
 use object_store::path::Path as ObjectPath;
 use object_store::{
-    Attribute, AttributeValue, Attributes, BackoffConfig, ClientOptions, ObjectStore, ObjectStoreExt, PutMultipartOptions,
-    PutOptions, PutPayload, RetryConfig, WriteMultipart,
+    Attribute, AttributeValue, Attributes, BackoffConfig, ClientOptions, ObjectStore, ObjectStoreExt,
+    PutMultipartOptions, PutOptions, PutPayload, RetryConfig, WriteMultipart,
 };
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -137,7 +137,14 @@ fn hint(e: &object_store::Error) -> &'static str {
         "the server refused the credentials"
     } else if has(&["NoSuchBucket"]) {
         "the bucket does not exist"
-    } else if has(&["QuotaExceeded", "507", "Insufficient Storage", "XMinioStorageFull", "StorageFull", "EntityTooLarge"]) {
+    } else if has(&[
+        "QuotaExceeded",
+        "507",
+        "Insufficient Storage",
+        "XMinioStorageFull",
+        "StorageFull",
+        "EntityTooLarge",
+    ]) {
         "the bucket is full or over its quota"
     } else if has(&["connect", "Connection refused", "timed out", "dns error", "error sending request", "HTTP error"]) {
         "cannot reach the object store"
@@ -282,7 +289,10 @@ pub struct Archive {
 
 impl std::fmt::Debug for Archive {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Archive").field("endpoint", &self.endpoint).field("bucket", &self.bucket).finish_non_exhaustive()
+        f.debug_struct("Archive")
+            .field("endpoint", &self.endpoint)
+            .field("bucket", &self.bucket)
+            .finish_non_exhaustive()
     }
 }
 
@@ -371,8 +381,7 @@ impl Archive {
             }
             None => format!("aws:{}", config.region),
         };
-        let store =
-            b.build().map_err(|source| ArchiveError::Client { bucket: config.bucket.clone(), source })?;
+        let store = b.build().map_err(|source| ArchiveError::Client { bucket: config.bucket.clone(), source })?;
         let rate = config.max_rate_kib_per_s;
         Ok(Archive {
             store: Arc::new(store),
@@ -595,14 +604,19 @@ impl Archive {
 
     /// Upload every file under `dir` to `key_prefix/` (verified), then its manifest; returns the
     /// manifest.
-    pub async fn upload_dir(&self, dir: &Path, key_prefix: &str, scan: &str, rig: &str) -> Result<Manifest, ArchiveError> {
+    pub async fn upload_dir(
+        &self,
+        dir: &Path,
+        key_prefix: &str,
+        scan: &str,
+        rig: &str,
+    ) -> Result<Manifest, ArchiveError> {
         let mut files = Vec::new();
         for rel in list_files(dir)? {
             let up = self.upload_file(&dir.join(&rel), &join_key(&[key_prefix, &rel]), &mut |_| {}).await?;
             files.push(ManifestEntry { path: rel, size: up.size, sha256: up.sha256 });
         }
-        let manifest =
-            Manifest { scan: scan.to_owned(), rig: rig.to_owned(), created_unix: now_unix(), files };
+        let manifest = Manifest { scan: scan.to_owned(), rig: rig.to_owned(), created_unix: now_unix(), files };
         let bytes = serde_json::to_vec_pretty(&manifest).map_err(|e| ArchiveError::Manifest {
             bucket: self.bucket.clone(),
             key: key_prefix.to_owned(),
@@ -618,8 +632,11 @@ impl Archive {
 pub fn list_files(dir: &Path) -> Result<Vec<String>, ArchiveError> {
     fn walk(root: &Path, rel: &str, out: &mut Vec<String>) -> Result<(), ArchiveError> {
         let d = if rel.is_empty() { root.to_path_buf() } else { root.join(rel) };
-        let entries =
-            std::fs::read_dir(&d).map_err(|source| ArchiveError::Local { what: "cannot list", path: d.clone(), source })?;
+        let entries = std::fs::read_dir(&d).map_err(|source| ArchiveError::Local {
+            what: "cannot list",
+            path: d.clone(),
+            source,
+        })?;
         for e in entries {
             let e = e.map_err(|source| ArchiveError::Local { what: "cannot list", path: d.clone(), source })?;
             let name = e.file_name().to_string_lossy().into_owned();
@@ -627,7 +644,8 @@ pub fn list_files(dir: &Path) -> Result<Vec<String>, ArchiveError> {
                 continue;
             }
             let child = if rel.is_empty() { name } else { format!("{rel}/{name}") };
-            let ty = e.file_type().map_err(|source| ArchiveError::Local { what: "cannot stat", path: e.path(), source })?;
+            let ty =
+                e.file_type().map_err(|source| ArchiveError::Local { what: "cannot stat", path: e.path(), source })?;
             if ty.is_dir() {
                 walk(root, &child, out)?;
             } else if ty.is_file() {

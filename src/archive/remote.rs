@@ -90,7 +90,11 @@ pub fn fetch(url: &str, settings_file: Option<&Path>) -> Result<RemoteScan, Remo
     let archive = Archive::open(&config, &creds)?;
     let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
     let dir = std::env::temp_dir().join(format!("scanrig-s3-{}-{nanos}", std::process::id()));
-    std::fs::create_dir_all(&dir).map_err(|source| ArchiveError::Local { what: "cannot create", path: dir.clone(), source })?;
+    std::fs::create_dir_all(&dir).map_err(|source| ArchiveError::Local {
+        what: "cannot create",
+        path: dir.clone(),
+        source,
+    })?;
     let rt = runtime()?;
     match rt.block_on(archive.download_scan(&key, &dir)) {
         Ok(manifest) => Ok(RemoteScan { archive, key, manifest, dir }),

@@ -115,9 +115,8 @@ impl ReplicationConfig {
     /// Every problem with the values, keys under `replication.`, at once.
     pub fn validate(&self) -> Vec<Problem> {
         let mut out = Vec::new();
-        let mut bad = |key: &str, message: String| {
-            out.push(Problem { key: format!("replication.{key}"), line: None, message })
-        };
+        let mut bad =
+            |key: &str, message: String| out.push(Problem { key: format!("replication.{key}"), line: None, message });
         if let Some(e) = &self.endpoint {
             match e.split_once("://") {
                 Some(("https", rest)) | Some(("http", rest)) if !rest.is_empty() => {

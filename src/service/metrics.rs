@@ -59,7 +59,8 @@ impl Metrics {
     /// The Prometheus text exposition (format 0.0.4). Every sample carries the label
     /// `rig="NAME"`, so one Prometheus scraping a fleet tells the rigs apart.
     pub fn render(&self, scan_running: bool) -> String {
-        let rig = self.rig.get().map_or("", String::as_str).replace('\\', "\\\\").replace('"', "\\\"").replace('\n', "\\n");
+        let rig =
+            self.rig.get().map_or("", String::as_str).replace('\\', "\\\\").replace('"', "\\\"").replace('\n', "\\n");
         let label = format!("rig=\"{rig}\"");
         let mut out = String::new();
         let mut counter = |name: &str, help: &str, v: u64| {
@@ -132,7 +133,10 @@ mod tests {
         m.add_timings(&Timings { carve: 1.5, ..Timings::default() });
         let text = m.render(true);
         let rig = "rig=\"bench \\\"2\\\"\"";
-        assert!(text.contains(&format!("# TYPE scanrig_frames_total counter\nscanrig_frames_total{{{rig}}} 3\n")), "{text}");
+        assert!(
+            text.contains(&format!("# TYPE scanrig_frames_total counter\nscanrig_frames_total{{{rig}}} 3\n")),
+            "{text}"
+        );
         assert!(text.contains(&format!("scanrig_stage_seconds_total{{{rig},stage=\"carve\"}} 1.5\n")), "{text}");
         assert!(text.contains(&format!("scanrig_scan_running{{{rig}}} 1\n")), "{text}");
         assert!(text.contains(&format!("scanrig_replication_queued{{{rig}}} 0\n")), "{text}");

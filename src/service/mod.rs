@@ -100,10 +100,9 @@ fn replication_settings(
     config: &crate::config::RigConfig,
 ) -> Result<Option<(crate::config::replication::ReplicationConfig, PathBuf)>, ServiceError> {
     match &opts.replication {
-        Some(p) => Ok(Some((
-            crate::config::replication::load_file(p).map_err(ServiceError::ReplicationConfig)?,
-            p.clone(),
-        ))),
+        Some(p) => {
+            Ok(Some((crate::config::replication::load_file(p).map_err(ServiceError::ReplicationConfig)?, p.clone())))
+        }
         None => Ok(config.replication.clone().map(|r| (r, opts.config_path.clone()))),
     }
 }
@@ -159,13 +158,13 @@ pub async fn run(
     }
     let metrics = Arc::new(metrics::Metrics::default());
     let settings = replication_settings(&opts, &config)?;
-    let _ = metrics.rig.set(settings.as_ref().map_or(config.rig.name.as_str(), |(r, _)| r.rig_folder(&config.rig.name)).to_owned());
+    let _ = metrics
+        .rig
+        .set(settings.as_ref().map_or(config.rig.name.as_str(), |(r, _)| r.rig_folder(&config.rig.name)).to_owned());
     let store = Arc::new(store);
     #[cfg(feature = "s3")]
-    let replication = settings
-        .as_ref()
-        .map(|s| start_replication(s, &opts, &config.rig.name, &store, &metrics))
-        .transpose()?;
+    let replication =
+        settings.as_ref().map(|s| start_replication(s, &opts, &config.rig.name, &store, &metrics)).transpose()?;
     #[cfg(not(feature = "s3"))]
     if settings.is_some() {
         return Err(ServiceError::ReplicationUnsupported);

@@ -159,10 +159,16 @@ impl Queue {
     /// bucket (`s3://BUCKET/PREFIX/RIG`).
     pub fn open(state_dir: &Path, base_url: String, metrics: Arc<Metrics>) -> Result<Queue, QueueError> {
         let dir = state_dir.join("replication");
-        std::fs::create_dir_all(&dir).map_err(|source| QueueError::Io { what: "cannot create", path: dir.clone(), source })?;
+        std::fs::create_dir_all(&dir).map_err(|source| QueueError::Io {
+            what: "cannot create",
+            path: dir.clone(),
+            source,
+        })?;
         let path = dir.join("queue.json");
         let file = match std::fs::read(&path) {
-            Ok(b) => serde_json::from_slice(&b).map_err(|source| QueueError::Malformed { path: path.clone(), source })?,
+            Ok(b) => {
+                serde_json::from_slice(&b).map_err(|source| QueueError::Malformed { path: path.clone(), source })?
+            }
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => QueueFile::default(),
             Err(source) => return Err(QueueError::Io { what: "cannot read", path, source }),
         };
@@ -184,7 +190,8 @@ impl Queue {
 
     fn persist(&self, f: &QueueFile) -> Result<(), QueueError> {
         self.update_gauges(f);
-        let json = serde_json::to_vec_pretty(f).map_err(|source| QueueError::Malformed { path: self.path.clone(), source })?;
+        let json =
+            serde_json::to_vec_pretty(f).map_err(|source| QueueError::Malformed { path: self.path.clone(), source })?;
         write_atomic(&self.path, &json).map_err(QueueError::Write)
     }
 
