@@ -64,6 +64,10 @@ struct Names {
 const KEYWORDS: &[&str] =
     &["by", "without", "on", "ignoring", "group_left", "group_right", "bool", "and", "or", "unless", "offset"];
 
+/// Aggregation operators, which may be followed by `by (...)` before their parenthesis.
+const AGGREGATIONS: &[&str] =
+    &["sum", "min", "max", "avg", "group", "stddev", "stdvar", "count", "count_values", "bottomk", "topk", "quantile"];
+
 fn scan_query(q: &str) -> Names {
     let b: Vec<char> = q.chars().collect();
     let mut names = Names::default();
@@ -104,8 +108,9 @@ fn scan_query(q: &str) -> Names {
                     names.grouping.extend(list.split(',').map(|s| s.trim().to_owned()).filter(|s| !s.is_empty()));
                     i = close + 1;
                 }
-            } else if next == Some('(') {
-                // A function call: its arguments are scanned as they come.
+            } else if next == Some('(') || AGGREGATIONS.contains(&word.as_str()) {
+                // A function call or an aggregation (`sum by (rig) (...)`): its arguments are
+                // scanned as they come.
             } else {
                 let mut labels = Vec::new();
                 if next == Some('{') {
@@ -161,6 +166,7 @@ fn every_dashboard_query_names_metrics_and_labels_the_daemon_exports() {
     let dir = tempfile::tempdir().expect("tempdir");
     let rig = rig_from(dir.path(), "simulated.toml", &[]);
     let state = dir.path().join("state");
+    std::fs::create_dir_all(&state).expect("state dir");
     let d = spawn(&rig, &state);
     let text = String::from_utf8(client(&d).request("GET", "/metrics", None).expect("metrics").body).expect("utf8");
     let exported = exported(&text);
