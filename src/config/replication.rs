@@ -260,4 +260,20 @@ mod tests {
         let unknown = parse("bucket = \"scans\"\nsecret = \"x\"\n").expect_err("unknown key");
         assert!(format!("{unknown:?}").contains("secret"), "{unknown:?}");
     }
+
+    #[test]
+    fn a_rig_file_section_is_validated_with_lines_and_never_stored_with_a_scan() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/simulated.toml");
+        let base = std::fs::read_to_string(&path).expect("shipped rig");
+        let good = format!("{base}\n[replication]\nbucket = \"lab-scans\"\nprefix = \"lab-a\"\n");
+        let config = crate::config::parse_with(&good, &path, |_| Vec::new()).expect("valid");
+        assert_eq!(config.replication.as_ref().map(|r| r.bucket.as_str()), Some("lab-scans"));
+        let stored = toml::to_string(&config).expect("serialise");
+        assert!(!stored.contains("replication") && !stored.contains("lab-scans"), "{stored}");
+        let bad = format!("{base}\n[replication]\nbucket = \"x\"\n");
+        let err = crate::config::parse_with(&bad, &path, |_| Vec::new()).expect_err("bad bucket");
+        let ConfigError::Invalid { problems, .. } = err else { panic!("not a value error") };
+        let p = problems.iter().find(|p| p.key == "replication.bucket").expect("bucket named");
+        assert_eq!(p.line, Some(base.lines().count() + 3), "{p:?}");
+    }
 }
