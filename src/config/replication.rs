@@ -276,4 +276,12 @@ mod tests {
         let p = problems.iter().find(|p| p.key == "replication.bucket").expect("bucket named");
         assert_eq!(p.line, Some(base.lines().count() + 3), "{p:?}");
     }
+
+    #[test]
+    fn the_shipped_example_parses() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("systemd/etc-scanrig/replication.toml");
+        let c = load_file(&path).expect("systemd/etc-scanrig/replication.toml");
+        assert_eq!((c.bucket.as_str(), c.prefix.as_str(), c.prune), ("lab-scans", "lab-a", PrunePolicy::Never));
+        assert_eq!(c.credentials_path(&path), Some(path.with_file_name("credentials")));
+    }
 }
