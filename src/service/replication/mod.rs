@@ -83,6 +83,12 @@ pub struct QueueEntry {
     /// Whether its local frames were pruned after the verified upload.
     #[serde(default)]
     pub pruned: bool,
+    /// Files of a replicated scan (its file list is dropped then, to keep the queue small).
+    #[serde(default)]
+    pub replicated_files: usize,
+    /// Bytes of a replicated scan's files.
+    #[serde(default)]
+    pub replicated_bytes: u64,
 }
 
 /// What `GET /api/v1/scans/{id}` shows under `replication`.
@@ -212,6 +218,8 @@ impl Queue {
             enqueued_unix: super::store::now_unix(),
             replicated_unix: None,
             pruned: false,
+            replicated_files: 0,
+            replicated_bytes: 0,
         });
         if let Err(e) = self.persist(&f) {
             tracing::warn!(scan = id, error = %super::rig::error_chain(&e), "replication queue kept in memory");
@@ -255,7 +263,11 @@ impl Queue {
     pub fn status(&self, id: &str) -> Option<ReplicationStatus> {
         let e = self.entry(id)?;
         let done: Vec<&QueuedFile> = e.files.iter().filter(|f| f.verified).collect();
-        let (files_done, files_total) = (done.len(), e.files.len());
+        let (mut files_done, mut files_total) = (done.len(), e.files.len());
+        let mut bytes_done = done.iter().map(|f| f.size).sum();
+        if e.phase == Phase::Replicated {
+            (files_done, files_total, bytes_done) = (e.replicated_files, e.replicated_files, e.replicated_bytes);
+        }
         let message = match e.phase {
             Phase::Queued => "queued".to_owned(),
             Phase::Uploading => format!("uploading {files_done} of {files_total} files"),
@@ -270,7 +282,7 @@ impl Queue {
             state: e.phase,
             files_done,
             files_total,
-            bytes_done: done.iter().map(|f| f.size).sum(),
+            bytes_done,
             attempts: e.attempts,
             error: e.error.clone(),
             message,

@@ -110,7 +110,7 @@ impl Uploader {
     /// Upload scan `id`'s files not yet verified, then its manifest.
     async fn replicate(&self, id: &str) -> Result<(), ArchiveError> {
         let dir = self.scan_dir(id);
-        let entry = self.queue.entry(id).ok_or(ArchiveError::Stopped)?;
+        let Some(entry) = self.queue.entry(id) else { return Ok(()) };
         if !entry.listed {
             let files = archive::list_files(&dir)?
                 .into_iter()
@@ -148,7 +148,7 @@ impl Uploader {
                 }
             });
         }
-        let entry = self.queue.entry(id).ok_or(ArchiveError::Stopped)?;
+        let Some(entry) = self.queue.entry(id) else { return Ok(()) };
         let files = entry
             .files
             .iter()
@@ -166,6 +166,10 @@ impl Uploader {
             e.phase = Phase::Replicated;
             e.error = None;
             e.replicated_unix = Some(now_unix());
+            e.replicated_files = e.files.len();
+            e.replicated_bytes = e.files.iter().map(|f| f.size).sum();
+            // The manifest in the bucket lists them now; the queue stays small over years of scans.
+            e.files = Vec::new();
         });
         tracing::info!(scan = id, files = entry.files.len(), "replicated and verified");
         Ok(())
