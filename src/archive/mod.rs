@@ -349,6 +349,8 @@ impl Archive {
     /// `request_timeout_s`; the client itself retries a request at most twice (the replication
     /// queue retries whole files with its own capped backoff).
     pub fn open(config: &ReplicationConfig, credentials: &Credentials) -> Result<Archive, ArchiveError> {
+        // TLS runs on rustls with ring (see Cargo.toml); an already installed provider is kept.
+        let _ = rustls::crypto::ring::default_provider().install_default();
         let timeout = Duration::from_secs_f64(config.request_timeout_s);
         let mut b = AmazonS3Builder::new()
             .with_bucket_name(&config.bucket)
