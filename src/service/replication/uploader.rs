@@ -88,7 +88,7 @@ impl Uploader {
                 }
                 Err(ArchiveError::Stopped) => return,
                 Err(e) => {
-                    let words = error_chain(&e);
+                    let words = words(&e);
                     let wait = waits.get(&id).map_or(initial, |(_, w)| *w);
                     tracing::warn!(scan = %id, error = %words, retry_in_s = wait.as_secs_f64(), "replication attempt failed; the local scan is kept");
                     self.metrics.replication_failures.fetch_add(1, Ordering::Relaxed);
@@ -208,4 +208,20 @@ impl Uploader {
             self.save(&e.id, |q| q.pruned = true);
         }
     }
+}
+
+/// An error and its sources in one line, leaving out a source whose text the line already holds
+/// (the object store's errors repeat their source in their own message).
+fn words(e: &dyn std::error::Error) -> String {
+    let mut out = e.to_string();
+    let mut cur = e.source();
+    while let Some(c) = cur {
+        let t = c.to_string();
+        if !out.contains(&t) {
+            out.push_str(": ");
+            out.push_str(&t);
+        }
+        cur = c.source();
+    }
+    out
 }
