@@ -258,7 +258,8 @@ fn a_scan_replicates_byte_for_byte_and_reprocesses_from_the_bucket_as_from_disk(
 fn server_killed_and_daemon_crashed_mid_upload_resume_with_nothing_lost_or_duplicated() {
     let dir = tempfile::tempdir().expect("tempdir");
     let Some(mut server) = S3Server::start(&dir.path().join("s3")) else { return };
-    // 192 KiB/s: the scan (about 2 MB) takes seconds to upload, so both kills land mid-upload.
+    // 192 KiB/s: the scan (model.stl alone is 1.7 MB) takes seconds to upload, so both kills land
+    // mid-upload.
     let settings = replication_file(
         dir.path(),
         &server,
