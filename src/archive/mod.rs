@@ -54,7 +54,7 @@ pub enum ArchiveError {
         bucket: String,
         /// Why.
         #[source]
-        source: object_store::Error,
+        source: Box<object_store::Error>,
     },
     /// A key is not a valid object path.
     #[error("`{key}` is not a valid object key")]
@@ -63,7 +63,7 @@ pub enum ArchiveError {
         key: String,
         /// Why.
         #[source]
-        source: object_store::path::Error,
+        source: Box<object_store::path::Error>,
     },
     /// A local file could not be read or written.
     #[error("{what} {path}")]
@@ -87,7 +87,7 @@ pub enum ArchiveError {
         key: String,
         /// The client's error (the server's answer).
         #[source]
-        source: object_store::Error,
+        source: Box<object_store::Error>,
     },
     /// An object read back or downloaded differs from what it should be.
     #[error("checksum mismatch: s3://{bucket}/{key} has {found_size} bytes with SHA-256 {found_sha256}, expected {size} bytes with SHA-256 {sha256}")]
@@ -383,7 +383,9 @@ impl Archive {
             }
             None => format!("aws:{}", config.region),
         };
-        let store = b.build().map_err(|source| ArchiveError::Client { bucket: config.bucket.clone(), source })?;
+        let store = b
+            .build()
+            .map_err(|source| ArchiveError::Client { bucket: config.bucket.clone(), source: Box::new(source) })?;
         let rate = config.max_rate_kib_per_s;
         Ok(Archive {
             store: Arc::new(store),
@@ -400,12 +402,12 @@ impl Archive {
     }
 
     fn path(key: &str) -> Result<ObjectPath, ArchiveError> {
-        ObjectPath::parse(key).map_err(|source| ArchiveError::Key { key: key.to_owned(), source })
+        ObjectPath::parse(key).map_err(|source| ArchiveError::Key { key: key.to_owned(), source: Box::new(source) })
     }
 
     fn request(&self, what: &'static str, key: &str) -> impl FnOnce(object_store::Error) -> ArchiveError {
         let (bucket, key) = (self.bucket.clone(), key.to_owned());
-        move |source| ArchiveError::Request { what, bucket, key, source }
+        move |source| ArchiveError::Request { what, bucket, key, source: Box::new(source) }
     }
 
     /// Upload the local file `local` as `key` (in parts of `part_size` when it is larger), with
