@@ -4,6 +4,7 @@
 //! Layers, each with one job; data flows one way: [`devices`] -> [`acquisition`] -> [`pipeline`].
 //! - [`atomic`]: atomic file writing (the bottom layer every writer uses).
 //! - [`config`]: the rig file.
+//! - `archive` (feature `s3`): the scan archive in S3-compatible object storage.
 //! - [`devices`]: device traits, simulated and real drivers, the registry.
 //! - [`sim`]: the simulated rig's world (scene, renderer, ground truth).
 //! - [`acquisition`]: scan sequences.
@@ -15,6 +16,8 @@
 //!   files on disk.
 
 pub mod acquisition;
+#[cfg(feature = "s3")]
+pub mod archive;
 pub mod atomic;
 pub mod calibration;
 pub mod config;

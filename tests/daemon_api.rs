@@ -97,8 +97,8 @@ fn start_watch_fetch_and_bad_requests() {
     let list = c.get_json("/api/v1/scans").expect("list");
     assert_eq!(list["scans"][0]["status"], "complete");
     let metrics = String::from_utf8(c.request("GET", "/metrics", None).expect("metrics").body).expect("utf8");
-    assert!(metrics.contains("scanrig_frames_total 8\n"), "{metrics}");
-    assert!(metrics.contains("scanrig_scans_completed_total 1\n"), "{metrics}");
+    assert!(metrics.contains("scanrig_frames_total{rig=\"simulated\"} 8\n"), "{metrics}");
+    assert!(metrics.contains("scanrig_scans_completed_total{rig=\"simulated\"} 1\n"), "{metrics}");
 }
 
 #[test]

@@ -165,9 +165,15 @@ enum Command {
     /// no hardware), or a calibrated image set on disk (`--dataset DIR`: Middlebury `*_par.txt` or a
     /// file of 3x4 projection matrices), and write the same outputs as `scan`.
     Reconstruct {
-        /// A stored scan directory (with `rig.toml` and `frames/`), e.g. a `scan --out` directory.
+        /// A stored scan directory (with `rig.toml` and `frames/`), e.g. a `scan --out` directory,
+        /// or a replicated scan in object storage, `s3://BUCKET/PREFIX/RIG/SCAN` (downloaded and
+        /// checked against its manifest; the result is also uploaded to `SCAN/reprocess-TIME/`).
         #[arg(long, conflicts_with_all = ["dataset", "bbox", "calibration", "views", "masks", "silhouette"])]
         scan: Option<PathBuf>,
+        /// For an `s3://` scan: a file with a `[replication]` section giving the endpoint, region,
+        /// allow_http and credentials (default: the AWS_* environment variables).
+        #[arg(long, requires = "scan")]
+        replication: Option<PathBuf>,
         /// The data set directory (image names in the calibration are relative to it).
         #[arg(long, required_unless_present = "scan")]
         dataset: Option<PathBuf>,
@@ -454,6 +460,47 @@ impl DaemonArgs {
     }
 }
 
+#[cfg(feature = "s3")]
+type Remote = Option<scanrig::archive::remote::RemoteScan>;
+#[cfg(not(feature = "s3"))]
+type Remote = Option<std::convert::Infallible>;
+
+#[cfg(feature = "s3")]
+fn fetch_remote(url: &str, settings: Option<&std::path::Path>) -> anyhow::Result<scanrig::archive::remote::RemoteScan> {
+    let r = scanrig::archive::remote::fetch(url, settings).with_context(|| format!("cannot download {url}"))?;
+    eprintln!("downloaded {} files of {url} (checked against its manifest)", r.manifest.files.len());
+    Ok(r)
+}
+
+#[cfg(not(feature = "s3"))]
+fn fetch_remote(url: &str, _: Option<&std::path::Path>) -> anyhow::Result<std::convert::Infallible> {
+    anyhow::bail!("{url}: reading scans from object storage needs scanrig built with the `s3` feature")
+}
+
+#[cfg(feature = "s3")]
+fn remote_dir(remote: &Remote) -> Option<PathBuf> {
+    remote.as_ref().map(|r| r.dir.clone())
+}
+
+#[cfg(not(feature = "s3"))]
+fn remote_dir(_: &Remote) -> Option<PathBuf> {
+    None
+}
+
+#[cfg(feature = "s3")]
+fn store_remote(remote: &Remote, out: &std::path::Path) -> anyhow::Result<()> {
+    if let Some(r) = remote {
+        let url = r.store_result(out).context("cannot upload the result beside the scan")?;
+        println!("results in {url}");
+    }
+    Ok(())
+}
+
+#[cfg(not(feature = "s3"))]
+fn store_remote(_: &Remote, _: &std::path::Path) -> anyhow::Result<()> {
+    Ok(())
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let filter = tracing_subscriber::EnvFilter::try_from_env("SCANRIG_LOG")
@@ -544,7 +591,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             println!("{}: ok", rig.display());
             Ok(())
         }
-        Command::Reconstruct { scan: Some(scan_dir), method, resolution, smooth, photo, out, .. } => {
+        Command::Reconstruct { scan: Some(scan_arg), method, resolution, smooth, photo, out, replication, .. } => {
+            let remote = match scan_arg.to_str().filter(|s| s.starts_with("s3://")) {
+                Some(url) => Some(fetch_remote(url, replication.as_deref())?),
+                None => None,
+            };
+            let scan_dir = remote_dir(&remote).unwrap_or_else(|| scan_arg.clone());
             let mut config = scanrig::rigfile::load(&scan_dir.join(scan::driver::RIG_FILE))
                 .with_context(|| format!("{} is not a stored scan", scan_dir.display()))?;
             if let Some(m) = method {
@@ -568,10 +620,11 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let mut reporter = Reporter::new(config.scan.positions as u64);
             let report =
                 scan::reprocess(&config, &scan_dir, &out, &CancelToken::new(), &mut |e| reporter.event(&e), None)
-                    .with_context(|| format!("reprocessing {} failed", scan_dir.display()))?;
+                    .with_context(|| format!("reprocessing {} failed", scan_arg.display()))?;
             reporter.finish();
             print_summary(&report);
             println!("results in {}", out.display());
+            store_remote(&remote, &out)?;
             Ok(())
         }
         Command::Reconstruct {

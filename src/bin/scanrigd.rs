@@ -28,6 +28,10 @@ struct Args {
     /// Seconds allowed for shutdown (stop the scan, park the rig).
     #[arg(long, default_value_t = 10.0)]
     shutdown_deadline: f64,
+    /// A file with a `[replication]` section (e.g. /etc/scanrig/replication.toml): replicate
+    /// finished scans to S3-compatible object storage. Replaces the rig file's `[replication]`.
+    #[arg(long)]
+    replication: Option<PathBuf>,
 }
 
 fn main() -> ExitCode {
@@ -59,6 +63,7 @@ fn run(args: Args) -> anyhow::Result<()> {
         state_dir: args.state_dir,
         token,
         shutdown_deadline: Duration::from_secs_f64(args.shutdown_deadline),
+        replication: args.replication,
     };
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     runtime.block_on(async move {

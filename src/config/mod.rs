@@ -1,6 +1,7 @@
 //! The rig file: TOML schema ([`schema`]), loading with file:line errors, and [`RigConfig::validate`],
 //! which reports every problem at once.
 
+pub mod replication;
 pub mod schema;
 pub mod structured_light;
 pub mod vocab;
@@ -761,6 +762,9 @@ impl RigConfig {
         }
         if !(p.arc_deg.is_finite() && p.arc_deg > 0.0 && p.arc_deg < 180.0) {
             bad("reconstruction.photo.arc_deg", format!("must be in (0, 180) degrees, got {}", p.arc_deg));
+        }
+        if let Some(r) = &self.replication {
+            out.extend(r.validate());
         }
         out
     }

@@ -35,6 +35,10 @@ pub struct RigConfig {
     pub scan: ScanPlan,
     /// `[reconstruction]`.
     pub reconstruction: ReconstructionConfig,
+    /// `[replication]`: archive finished scans in S3-compatible object storage (daemon only).
+    /// Never written into a scan's stored `rig.toml`.
+    #[serde(default, skip_serializing)]
+    pub replication: Option<super::replication::ReplicationConfig>,
 }
 
 /// `[rig]`.

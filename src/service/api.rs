@@ -287,7 +287,8 @@ async fn get_scan(State(s): State<AppState>, Path(id): Path<String>) -> Result<J
         .map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".png")).count())
         .unwrap_or(0);
     let entry = console::scan_entry(s.jobs.store(), &meta);
-    Ok(Json(json!({ "scan": entry, "frames": frames, "report": report })))
+    let replication = s.jobs.replication().and_then(|q| q.status(&id));
+    Ok(Json(json!({ "scan": entry, "frames": frames, "report": report, "replication": replication })))
 }
 
 async fn pause_scan(State(s): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, ApiError> {

@@ -196,6 +196,8 @@ pub struct Jobs {
     live: Arc<watch::Sender<Option<LiveModel>>>,
     active: Arc<Mutex<Option<Active>>>,
     shutting_down: Arc<AtomicBool>,
+    /// The replication queue every completed scan goes into, when replication is configured.
+    replication: Option<Arc<super::replication::Queue>>,
 }
 
 impl std::fmt::Debug for Jobs {
@@ -216,7 +218,19 @@ impl Jobs {
             live: Arc::new(watch::channel(None).0),
             active: Arc::new(Mutex::new(None)),
             shutting_down: Arc::new(AtomicBool::new(false)),
+            replication: None,
         }
+    }
+
+    /// Put every scan that completes from now on into `queue`.
+    pub fn with_replication(mut self, queue: Arc<super::replication::Queue>) -> Jobs {
+        self.replication = Some(queue);
+        self
+    }
+
+    /// The replication queue, when replication is configured.
+    pub fn replication(&self) -> Option<&Arc<super::replication::Queue>> {
+        self.replication.as_ref()
     }
 
     /// The store.
@@ -510,6 +524,9 @@ impl Jobs {
         let mut active = self.active.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         if let Err(e) = self.store.set_status(id, status, error.clone()) {
             tracing::error!(scan = id, error = %error_chain(&e), "cannot record the scan's status");
+        }
+        if let (ScanStatus::Complete, Some(queue)) = (status, &self.replication) {
+            queue.enqueue(id);
         }
         *active = None;
         drop(active);

@@ -27,6 +27,20 @@ pub struct Metrics {
     pub http_requests: AtomicU64,
     /// Sum of stage timings of completed scans, seconds.
     pub stage_seconds: Mutex<Timings>,
+    /// The `rig` label on every sample (the rig file's `[rig] name`, or `[replication] rig`).
+    pub rig: std::sync::OnceLock<String>,
+    /// Gauge: scans in the replication queue not yet replicated.
+    pub replication_queued: AtomicU64,
+    /// Gauge: scans whose last replication attempt failed.
+    pub replication_failing: AtomicU64,
+    /// Scans replicated and verified.
+    pub replication_scans: AtomicU64,
+    /// Files uploaded and verified.
+    pub replication_files: AtomicU64,
+    /// Bytes sent to the object store (including attempts that failed).
+    pub replication_bytes: AtomicU64,
+    /// Failed replication attempts.
+    pub replication_failures: AtomicU64,
 }
 
 impl Metrics {
@@ -42,11 +56,15 @@ impl Metrics {
         }
     }
 
-    /// The Prometheus text exposition (format 0.0.4).
+    /// The Prometheus text exposition (format 0.0.4). Every sample carries the label
+    /// `rig="NAME"`, so one Prometheus scraping a fleet tells the rigs apart.
     pub fn render(&self, scan_running: bool) -> String {
+        let rig =
+            self.rig.get().map_or("", String::as_str).replace('\\', "\\\\").replace('"', "\\\"").replace('\n', "\\n");
+        let label = format!("rig=\"{rig}\"");
         let mut out = String::new();
         let mut counter = |name: &str, help: &str, v: u64| {
-            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name}{{{label}}} {v}");
         };
         let get = |a: &AtomicU64| a.load(Ordering::Relaxed);
         counter("scanrig_scans_started_total", "Scans started, new or resumed.", get(&self.scans_started));
@@ -57,9 +75,32 @@ impl Metrics {
         counter("scanrig_device_errors_total", "Device errors.", get(&self.device_errors));
         counter("scanrig_reconnects_total", "Device reconnections.", get(&self.reconnects));
         counter("scanrig_http_requests_total", "HTTP requests served.", get(&self.http_requests));
-        let _ =
-            writeln!(out, "# HELP scanrig_scan_running Whether a scan is running.\n# TYPE scanrig_scan_running gauge");
-        let _ = writeln!(out, "scanrig_scan_running {}", u8::from(scan_running));
+        counter(
+            "scanrig_replication_scans_total",
+            "Scans replicated to object storage and verified.",
+            get(&self.replication_scans),
+        );
+        counter("scanrig_replication_files_total", "Files uploaded and verified.", get(&self.replication_files));
+        counter(
+            "scanrig_replication_bytes_total",
+            "Bytes sent to object storage, failed attempts included.",
+            get(&self.replication_bytes),
+        );
+        counter("scanrig_replication_failures_total", "Failed replication attempts.", get(&self.replication_failures));
+        let mut gauge = |name: &str, help: &str, v: u64| {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} gauge\n{name}{{{label}}} {v}");
+        };
+        gauge("scanrig_scan_running", "Whether a scan is running.", u64::from(scan_running));
+        gauge(
+            "scanrig_replication_queued",
+            "Scans waiting in the replication queue or being uploaded.",
+            get(&self.replication_queued),
+        );
+        gauge(
+            "scanrig_replication_failing",
+            "Scans whose last replication attempt failed.",
+            get(&self.replication_failing),
+        );
         let _ = writeln!(
             out,
             "# HELP scanrig_stage_seconds_total Wall-clock seconds per stage, summed over completed scans.\n# TYPE scanrig_stage_seconds_total counter"
@@ -73,7 +114,7 @@ impl Metrics {
                 ("export", t.export),
                 ("total", t.total),
             ] {
-                let _ = writeln!(out, "scanrig_stage_seconds_total{{stage=\"{stage}\"}} {v}");
+                let _ = writeln!(out, "scanrig_stage_seconds_total{{{label},stage=\"{stage}\"}} {v}");
             }
         }
         out
@@ -87,12 +128,18 @@ mod tests {
     #[test]
     fn renders_every_counter_with_type_lines() {
         let m = Metrics::default();
+        let _ = m.rig.set("bench \"2\"".into());
         m.frames.fetch_add(3, Ordering::Relaxed);
         m.add_timings(&Timings { carve: 1.5, ..Timings::default() });
         let text = m.render(true);
-        assert!(text.contains("# TYPE scanrig_frames_total counter\nscanrig_frames_total 3\n"), "{text}");
-        assert!(text.contains("scanrig_stage_seconds_total{stage=\"carve\"} 1.5\n"), "{text}");
-        assert!(text.contains("scanrig_scan_running 1\n"));
+        let rig = "rig=\"bench \\\"2\\\"\"";
+        assert!(
+            text.contains(&format!("# TYPE scanrig_frames_total counter\nscanrig_frames_total{{{rig}}} 3\n")),
+            "{text}"
+        );
+        assert!(text.contains(&format!("scanrig_stage_seconds_total{{{rig},stage=\"carve\"}} 1.5\n")), "{text}");
+        assert!(text.contains(&format!("scanrig_scan_running{{{rig}}} 1\n")), "{text}");
+        assert!(text.contains(&format!("scanrig_replication_queued{{{rig}}} 0\n")), "{text}");
         for line in text.lines().filter(|l| !l.starts_with('#')) {
             let mut parts = line.rsplitn(2, ' ');
             let value = parts.next().unwrap_or("");

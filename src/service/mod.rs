@@ -16,6 +16,7 @@ pub mod http;
 pub mod jobs;
 pub mod metrics;
 pub mod notify;
+pub mod replication;
 pub mod rig;
 pub mod state_lock;
 pub mod store;
@@ -45,6 +46,8 @@ pub struct Options {
     pub token: Option<String>,
     /// How long shutdown may take (stop the scan, park the rig), seconds.
     pub shutdown_deadline: Duration,
+    /// A file with a `[replication]` section (`--replication FILE`); it replaces the rig file's.
+    pub replication: Option<PathBuf>,
 }
 
 /// Why the daemon could not start or stopped with an error.
@@ -80,6 +83,64 @@ pub enum ServiceError {
     /// Shutdown took longer than the deadline.
     #[error("shutdown did not finish within {0:?}")]
     ShutdownDeadline(Duration),
+    /// The replication file is invalid.
+    #[error("cannot load the replication settings")]
+    ReplicationConfig(#[source] ConfigError),
+    /// The replication queue cannot be opened.
+    #[error("cannot open the replication queue")]
+    ReplicationQueue(#[source] replication::QueueError),
+    /// Replication is configured but this build has no object store client.
+    #[error("replication is configured but scanrigd was built without the `s3` feature")]
+    ReplicationUnsupported,
+    /// The object store client cannot be set up (credentials, endpoint).
+    #[cfg(feature = "s3")]
+    #[error("cannot set up replication")]
+    Archive(#[source] crate::archive::ArchiveError),
+}
+
+/// The replication settings in force: `--replication FILE` (with the file it came from), else the
+/// rig file's `[replication]`.
+fn replication_settings(
+    opts: &Options,
+    config: &crate::config::RigConfig,
+) -> Result<Option<(crate::config::replication::ReplicationConfig, PathBuf)>, ServiceError> {
+    match &opts.replication {
+        Some(p) => {
+            Ok(Some((crate::config::replication::load_file(p).map_err(ServiceError::ReplicationConfig)?, p.clone())))
+        }
+        None => Ok(config.replication.clone().map(|r| (r, opts.config_path.clone()))),
+    }
+}
+
+/// Open the queue and build the uploader of `settings` (feature `s3`).
+#[cfg(feature = "s3")]
+fn start_replication(
+    settings: &(crate::config::replication::ReplicationConfig, PathBuf),
+    opts: &Options,
+    rig_name: &str,
+    store: &Arc<store::ScanStore>,
+    metrics: &Arc<metrics::Metrics>,
+) -> Result<(Arc<replication::Queue>, replication::uploader::Uploader), ServiceError> {
+    let (cfg, file) = settings;
+    let credentials = crate::archive::Credentials::for_config(cfg, file).map_err(ServiceError::Archive)?;
+    let archive = crate::archive::Archive::open(cfg, &credentials).map_err(ServiceError::Archive)?;
+    let rig = cfg.rig_folder(rig_name).to_owned();
+    let rig_key = crate::archive::join_key(&[&cfg.prefix, &rig]);
+    let queue = Arc::new(
+        replication::Queue::open(&opts.state_dir, format!("s3://{}/{rig_key}", cfg.bucket), metrics.clone())
+            .map_err(ServiceError::ReplicationQueue)?,
+    );
+    tracing::info!(bucket = %cfg.bucket, folder = %rig_key, archive = ?archive, "replicating finished scans");
+    let uploader = replication::uploader::Uploader {
+        queue: queue.clone(),
+        archive,
+        store: store.clone(),
+        config: cfg.clone(),
+        rig_key,
+        rig,
+        metrics: metrics.clone(),
+    };
+    Ok((queue, uploader))
 }
 
 /// Run the daemon until `shutdown` resolves. `on_listening` is called with the bound address once
@@ -101,10 +162,30 @@ pub async fn run(
         tracing::warn!(scan = %id, "scan was interrupted by a crash or power loss; it can be resumed");
     }
     let metrics = Arc::new(metrics::Metrics::default());
+    let settings = replication_settings(&opts, &config)?;
+    let _ = metrics
+        .rig
+        .set(settings.as_ref().map_or(config.rig.name.as_str(), |(r, _)| r.rig_folder(&config.rig.name)).to_owned());
+    let store = Arc::new(store);
+    #[cfg(feature = "s3")]
+    let replication =
+        settings.as_ref().map(|s| start_replication(s, &opts, &config.rig.name, &store, &metrics)).transpose()?;
+    #[cfg(not(feature = "s3"))]
+    if settings.is_some() {
+        return Err(ServiceError::ReplicationUnsupported);
+    }
     let (rig, rig_thread) = rig::RigHandle::spawn(config.clone(), metrics.clone()).map_err(ServiceError::Thread)?;
-    let jobs = jobs::Jobs::new(Arc::new(store), rig.clone(), metrics.clone());
+    let jobs = jobs::Jobs::new(store, rig.clone(), metrics.clone());
     let token = CancellationToken::new();
     let camera = camera::LiveCamera::new(rig.clone());
+    // The uploader: a supervised task stopped by the daemon's token (its progress is on disk).
+    #[cfg(feature = "s3")]
+    let (jobs, uploader_task) = match replication {
+        Some((queue, uploader)) => (jobs.with_replication(queue), Some(tokio::spawn(uploader.run(token.clone())))),
+        None => (jobs, None),
+    };
+    #[cfg(not(feature = "s3"))]
+    let uploader_task: Option<tokio::task::JoinHandle<()>> = None;
     let state = api::AppState {
         config: Arc::new(RwLock::new(config)),
         rig,
@@ -158,6 +239,11 @@ pub async fn run(
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
         reload.abort();
+        if let Some(t) = uploader_task {
+            if let Err(e) = t.await {
+                tracing::error!(error = %e, "the replication task failed");
+            }
+        }
         let served = server.await;
         // Every handle gone: the device thread parks the hardware and exits.
         drop(state);

@@ -77,6 +77,11 @@ pub fn spawn(rig: &Path, state: &Path) -> Daemon {
 
 /// As [`spawn`], with the log written under `log_dir`.
 pub fn spawn_in(rig: &Path, state: &Path, log_dir: &Path) -> Daemon {
+    spawn_with(rig, state, log_dir, &[], &[("SCANRIG_LOG", "info")])
+}
+
+/// As [`spawn_in`], with more arguments and environment variables.
+pub fn spawn_with(rig: &Path, state: &Path, log_dir: &Path, args: &[&str], envs: &[(&str, &str)]) -> Daemon {
     static N: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
     let n = N.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
     let stderr = log_dir.join(format!("daemon-{}-{n}.log", std::process::id()));
@@ -86,7 +91,9 @@ pub fn spawn_in(rig: &Path, state: &Path, log_dir: &Path) -> Daemon {
         .arg(rig)
         .arg("--state-dir")
         .arg(state)
+        .args(args)
         .env("SCANRIG_LOG", "info")
+        .envs(envs.iter().copied())
         .env_remove("NOTIFY_SOCKET")
         .stdout(Stdio::piped())
         .stderr(log)
