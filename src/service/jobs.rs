@@ -466,8 +466,14 @@ impl Jobs {
         });
         self.live.send_replace(None);
         let finishing = self.finishing_estimate(config);
-        let events =
-            progress_sink(self.progress.clone(), self.live.clone(), id.clone(), self.metrics.clone(), started, finishing);
+        let events = progress_sink(
+            self.progress.clone(),
+            self.live.clone(),
+            id.clone(),
+            self.metrics.clone(),
+            started,
+            finishing,
+        );
         let live = Some(LiveSpec::default());
         let out = self.store.dir(&id);
         let this = self.clone();
