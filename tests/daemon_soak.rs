@@ -3,7 +3,7 @@
 //! download results. Resident memory and open descriptors must stay flat and nothing may fail.
 //!
 //! Ignored by default (it runs for minutes); `.ci/run` runs a 2-minute version:
-//! `SCANRIG_SOAK_SECS=120 cargo test --release --test daemon_soak -- --ignored --nocapture`.
+//! `SCANRIG_SOAK_SECS=60 cargo test --release --test daemon_soak -- --ignored --nocapture`.
 
 mod daemon_common;
 
@@ -54,7 +54,7 @@ impl Counters {
 }
 
 #[test]
-#[ignore = "runs for minutes; .ci/run runs it with SCANRIG_SOAK_SECS=120"]
+#[ignore = "runs for minutes; .ci/run runs it with SCANRIG_SOAK_SECS=60"]
 fn soak_scans_polling_and_downloads_keep_memory_and_descriptors_flat() {
     let secs: u64 = std::env::var("SCANRIG_SOAK_SECS").ok().and_then(|v| v.parse().ok()).unwrap_or(600);
     let dir = tempfile::tempdir().expect("tempdir");
@@ -111,11 +111,14 @@ fn soak_scans_polling_and_downloads_keep_memory_and_descriptors_flat() {
 
     let t0 = Instant::now();
     let mut scans = 1u64;
+    // RSS after each scan: (seconds into the soak, kB).
+    let mut rss_series = Vec::new();
     while t0.elapsed() < Duration::from_secs(secs) {
         let id = start_scan(&c);
         let meta = wait_finished(&c, &id, Duration::from_secs(120));
         assert_eq!(meta["status"], "complete", "{meta}");
         scans += 1;
+        rss_series.push((t0.elapsed().as_secs(), rss_kb(d.pid())));
         *last_complete.lock().expect("lock") = id;
         std::thread::sleep(Duration::from_secs(2));
     }
@@ -138,6 +141,14 @@ fn soak_scans_polling_and_downloads_keep_memory_and_descriptors_flat() {
         "soak {secs} s: {scans} scans complete, {requests} requests ({mb:.1} MB served), {errors} errors; \
          RSS {rss0} kB -> {rss1} kB, open fds {fds0} -> {fds1}"
     );
+    // The largest RSS in each minute, to tell growth from a plateau.
+    let minutes: Vec<String> = (0..=secs / 60)
+        .filter_map(|m| {
+            let max = rss_series.iter().filter(|(t, _)| t / 60 == m).map(|&(_, r)| r).max()?;
+            Some(format!("{m}: {max}"))
+        })
+        .collect();
+    eprintln!("RSS (kB) by minute, largest after a scan: {}", minutes.join(", "));
     assert_eq!(errors, 0, "requests failed during the soak");
     assert!(fds1 <= fds0 + 2, "descriptors leak: {fds0} -> {fds1}");
     // Flat: allocator noise only, not a growth with the scans done (each scan holds ~4 MB of frames).
