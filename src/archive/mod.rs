@@ -133,23 +133,67 @@ fn hint(e: &object_store::Error) -> &'static str {
         cur = c.source();
     }
     let has = |s: &[&str]| s.iter().any(|w| text.contains(w));
-    if has(&["SignatureDoesNotMatch", "InvalidAccessKeyId", "AccessDenied", "403", "InvalidToken", "ExpiredToken"]) {
+    // No answer at all first: the text of a failed connection holds numbers (ports, times) that a
+    // status code must not be read out of.
+    let unreachable = [
+        "tcp connect error",
+        "Connection refused",
+        "Connection reset",
+        "connection closed",
+        "error sending request",
+        "dns error",
+        "timed out",
+    ];
+    if has(&unreachable) {
+        "cannot reach the object store"
+    } else if has(&[
+        "SignatureDoesNotMatch",
+        "InvalidAccessKeyId",
+        "AccessDenied",
+        "403 Forbidden",
+        "status 403",
+        "InvalidToken",
+        "ExpiredToken",
+    ]) {
         "the server refused the credentials"
     } else if has(&["NoSuchBucket"]) {
         "the bucket does not exist"
-    } else if has(&[
-        "QuotaExceeded",
-        "507",
-        "Insufficient Storage",
-        "XMinioStorageFull",
-        "StorageFull",
-        "EntityTooLarge",
-    ]) {
+    } else if has(&["QuotaExceeded", "Insufficient Storage", "XMinioStorageFull", "StorageFull", "EntityTooLarge"]) {
         "the bucket is full or over its quota"
-    } else if has(&["connect", "Connection refused", "timed out", "dns error", "error sending request", "HTTP error"]) {
+    } else if has(&["connect", "HTTP error"]) {
         "cannot reach the object store"
     } else {
         "the object store failed"
+    }
+}
+
+#[cfg(test)]
+mod hint_tests {
+    use super::hint;
+
+    fn generic(message: &str) -> object_store::Error {
+        object_store::Error::Generic { store: "S3", source: message.to_owned().into() }
+    }
+
+    #[test]
+    fn a_refused_connection_is_unreachable_whatever_numbers_it_holds() {
+        // A port of 34035 and a time of 224.6 ms once read as a 403 (the credentials).
+        let e = generic(
+            "Error performing GET http://127.0.0.1:34035/scans/x in 224.622614ms, after 2 retries - HTTP error: \
+             error sending request: client error (Connect): tcp connect error: Connection refused (os error 111)",
+        );
+        assert_eq!(hint(&e), "cannot reach the object store");
+        assert_eq!(
+            hint(&generic("Client error with status 403 Forbidden: AccessDenied")),
+            "the server refused the credentials"
+        );
+        assert_eq!(
+            hint(&generic("InvalidAccessKeyId: the key id 4035 is unknown")),
+            "the server refused the credentials"
+        );
+        assert_eq!(hint(&generic("NoSuchBucket")), "the bucket does not exist");
+        assert_eq!(hint(&generic("507 Insufficient Storage")), "the bucket is full or over its quota");
+        assert_eq!(hint(&generic("something else")), "the object store failed");
     }
 }
 
