@@ -3,42 +3,9 @@
 
 mod daemon_common;
 
-use std::process::{Command, Output, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use daemon_common::{client, frames_on_disk, rig_from, scan_meta, spawn, wait_for};
-
-/// Run `scanrig args... --daemon addr`, killed after `limit`.
-fn cli(addr: &str, args: &[&str], limit: Duration) -> Output {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_scanrig"))
-        .args(args)
-        .args(["--daemon", addr])
-        .env_remove("SCANRIG_TOKEN")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn scanrig");
-    let t = Instant::now();
-    while child.try_wait().expect("wait").is_none() {
-        if t.elapsed() > limit {
-            let _ = child.kill();
-            panic!("scanrig {args:?} did not finish in {limit:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child.wait_with_output().expect("output")
-}
-
-fn ok(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "exit {:?}\nstdout: {}\nstderr: {}",
-        out.status,
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
+use daemon_common::{cli, client, frames_on_disk, ok, rig_from, scan_meta, spawn, wait_for};
 
 #[test]
 fn cli_status_start_watch_pause_resume_cancel_fetch() {

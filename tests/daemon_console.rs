@@ -7,11 +7,11 @@ mod daemon_common;
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use daemon_common::{client, rig_from, spawn, wait_finished, wait_for};
+use daemon_common::{client, ok, rig_from, spawn, wait_finished, wait_for};
 use scanrig::service::client::{read_multipart_part, stored_zip_entries, Client, MultipartPart};
 
 /// The shipped simulated rig, 8 positions at resolution 40, with a settle time so that a scan
@@ -318,34 +318,7 @@ fn camera_control_scans_archive_and_delete() {
 
 /// Run `scanrig args... --daemon addr`, killed after 60 s.
 fn cli(addr: &str, args: &[&str]) -> Output {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_scanrig"))
-        .args(args)
-        .args(["--daemon", addr])
-        .env_remove("SCANRIG_TOKEN")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn scanrig");
-    let t = Instant::now();
-    while child.try_wait().expect("wait").is_none() {
-        if t.elapsed() > Duration::from_secs(60) {
-            let _ = child.kill();
-            panic!("scanrig {args:?} did not finish in 60 s");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child.wait_with_output().expect("output")
-}
-
-fn ok(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "exit {:?}\nstdout: {}\nstderr: {}",
-        out.status,
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
+    daemon_common::cli(addr, args, Duration::from_secs(60))
 }
 
 /// The stderr of a command that must fail, checked for words rather than Rust debug names.
