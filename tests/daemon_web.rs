@@ -775,3 +775,110 @@ fn static_files_are_served_from_the_binary_and_nothing_else() {
         assert_eq!(r.status, 404, "{bad}");
     }
 }
+
+#[test]
+fn with_a_token_the_page_asks_for_it_once_and_its_session_carries_events_camera_and_models() {
+    let Some(exe) = find_chromium() else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI must run this test, but no chromium found (apt-get install chromium)"
+        );
+        eprintln!("skipped: no chromium found (apt-get install chromium)");
+        return;
+    };
+    const TOKEN: &str = "console-token-5f0c2e9a81";
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rig = rig_from(
+        dir.path(),
+        "simulated.toml",
+        &[("positions = 24", "positions = 6"), ("resolution = 128", "resolution = 32")],
+    );
+    let d = daemon_common::spawn_with(&rig, dir.path(), dir.path(), &[], &[("SCANRIGD_TOKEN", TOKEN)]);
+    let c = scanrig::service::client::Client::new(&d.addr, Some(TOKEN.into()))
+        .expect("client")
+        .with_timeout(Duration::from_secs(30));
+    let mut b = Browser::launch(&exe, &dir.path().join("profile"));
+    b.open(&format!("http://{}/", d.addr));
+
+    // Before signing in the page shows only the sign-in form and asks for nothing it would be
+    // refused (no camera stream, no event stream).
+    b.wait_js(
+        "the sign-in form",
+        Duration::from_secs(20),
+        "!document.getElementById('sign-in').hidden && document.getElementById('console').hidden",
+    );
+    b.pump(Duration::from_millis(500));
+    let base = format!("http://{}", d.addr);
+    for r in b.requests() {
+        let path = r.url.strip_prefix(&base).unwrap_or(&r.url).to_owned();
+        assert!(path == "/" || path.starts_with("/web/") || path == "/api/v1/session", "asked before sign-in: {r:?}");
+        assert!(r.failed.is_none() && r.status.is_some_and(|s| s < 400), "{r:?}");
+    }
+    assert_eq!(b.eval("document.getElementById('camera').getAttribute('src')"), Value::Null);
+    page_shots(&mut b, "sign-in");
+
+    // A wrong token is refused in words and gives no session.
+    let n = b.requests().len();
+    b.set_value("#sign-in-token", "console-token-5f0c2e9a8");
+    b.click("#sign-in-go");
+    assert_eq!(b.wait_request(n, "POST", "/api/v1/session"), 401);
+    b.wait_js(
+        "the refusal in words",
+        Duration::from_secs(5),
+        "document.getElementById('sign-in-msg').textContent.includes(\"not this daemon's access token\")",
+    );
+    assert_eq!(b.eval("fetch('/api/v1/status').then(r => r.status)"), 401);
+
+    // The right one: the console comes up and every live part works through the cookie alone.
+    let n = b.requests().len();
+    b.set_value("#sign-in-token", TOKEN);
+    b.click("#sign-in-go");
+    assert_eq!(b.wait_request(n, "POST", "/api/v1/session"), 200);
+    b.wait_js("the method list", Duration::from_secs(20), "document.getElementById('method').options.length === 7");
+    assert_eq!(
+        b.eval("document.getElementById('sign-in').hidden && !document.getElementById('sign-out').hidden"),
+        true
+    );
+    assert_eq!(b.eval("document.cookie.includes('scanrig_session')"), false, "the session cookie is HttpOnly");
+    b.wait_js("camera frames", Duration::from_secs(15), "document.getElementById('camera').naturalWidth === 640");
+    let n = b.requests().len();
+    b.set_value("#method", "space-carving");
+    b.click("#start");
+    assert_eq!(b.wait_request(n, "POST", "/api/v1/scans"), 202);
+    // Progress and the live estimate reach the page over the event stream, and the estimate's
+    // PLY is fetched with the cookie.
+    b.wait_js(
+        "progress over the event stream",
+        Duration::from_secs(60),
+        "window.scanrig.progress && window.scanrig.progress.step > 0",
+    );
+    b.wait_js("a live estimate drawn", Duration::from_secs(60), "window.scanrig.live.renders > 0");
+    let id = b.eval("window.scanrig.progress.scan_id").as_str().expect("scan id").to_owned();
+    let done = wait_finished(&c, &id, Duration::from_secs(120));
+    assert_eq!(done["status"], "complete", "{done}");
+    b.wait_js(
+        "the finished scan on the page",
+        Duration::from_secs(30),
+        &format!("document.querySelector('[data-scan=\"{id}\"]') && window.scanrig.progress.status === 'complete'"),
+    );
+    let events = b.requests().into_iter().find(|r| r.url.ends_with("/api/v1/events")).expect("an event stream");
+    assert_eq!(events.status, Some(200), "{events:?}");
+
+    // Signing out ends the session for this browser: the page asks again and the cookie is dead.
+    let n = b.requests().len();
+    b.click("#sign-out");
+    assert_eq!(b.wait_request(n, "DELETE", "/api/v1/session"), 200);
+    b.wait_js("the sign-in form again", Duration::from_secs(20), "!document.getElementById('sign-in').hidden");
+    assert_eq!(b.eval("fetch('/api/v1/status').then(r => r.status)"), 401);
+
+    let unexpected: Vec<Req> = b
+        .requests()
+        .into_iter()
+        .filter(|r| r.failed.is_some() || r.status.is_some_and(|s| s >= 400))
+        .filter(|r| !(r.url.ends_with("/api/v1/session") && r.status == Some(401)))
+        .filter(|r| !(r.url.ends_with("/api/v1/status") && r.status == Some(401)))
+        .collect();
+    assert!(unexpected.is_empty(), "failed requests: {unexpected:#?}");
+    let errors: Vec<String> = b.errors().into_iter().filter(|e| !e.contains("status of 401 (Unauthorized)")).collect();
+    assert!(errors.is_empty(), "console errors: {errors:#?}");
+}

@@ -22,6 +22,8 @@ const state = {
   // how many estimates were drawn and the event of the one on screen.
   live: { scanId: null, event: null, dirty: false, fetching: false, renders: 0, shown: null },
   shownScan: null,
+  // Whether the panels were started (after sign-in, where the daemon asks for one).
+  booted: false,
   kind: "mesh",
 };
 window.scanrig = state;
@@ -47,6 +49,8 @@ async function api(path, opts = {}) {
   }
   if (!r.ok) {
     const e = await r.json().catch(() => ({}));
+    // The session ended (signed out elsewhere, expired, or the daemon restarted): ask again.
+    if (r.status === 401 && e.error && e.error.code === "unauthorized" && state.booted) showSignIn();
     throw new ApiError(r.status, e.error && e.error.code, e.error && e.error.message);
   }
   return r;
@@ -465,9 +469,56 @@ function listen() {
   });
 }
 
-loadStatus();
-loadMethods().then(loadHistory);
-loadControl();
-loadCamera();
-listen();
-setInterval(loadStatus, 15000);
+// ---- sign-in and start-up --------------------------------------------------------------------
+
+/** Start every panel: the first answers, the camera stream, the event stream. */
+function boot() {
+  state.booted = true;
+  loadStatus();
+  loadMethods().then(loadHistory);
+  loadControl();
+  loadCamera();
+  $("camera").src = "/api/v1/camera.mjpg";
+  listen();
+  setInterval(loadStatus, 15000);
+}
+
+/** Hide the console and ask for the daemon's token. */
+function showSignIn() {
+  $("console").hidden = true;
+  $("sign-out").hidden = true;
+  $("sign-in").hidden = false;
+  $("rig").textContent = "Sign in to use this rig.";
+  $("sign-in-token").focus();
+}
+
+$("sign-in-form").addEventListener("submit", (ev) => {
+  ev.preventDefault();
+  act($("sign-in-go"), $("sign-in-msg"), async () => {
+    await post("/session", { token: $("sign-in-token").value });
+    $("sign-in-token").value = "";
+    // Signed in again after a lost session: start from a clean page.
+    if (state.booted) return location.reload();
+    $("sign-in").hidden = true;
+    $("console").hidden = false;
+    $("sign-out").hidden = false;
+    boot();
+  });
+});
+
+$("sign-out").addEventListener("click", async () => {
+  await api("/session", { method: "DELETE" }).catch(() => {});
+  location.reload();
+});
+
+(async function start() {
+  let s = { required: false, authenticated: true };
+  try {
+    s = await getJson("/session");
+  } catch (e) {
+    $("rig").textContent = "Daemon unreachable: " + e.message;
+  }
+  if (s.required && !s.authenticated) return showSignIn();
+  $("sign-out").hidden = !s.required;
+  boot();
+})();

@@ -32,7 +32,9 @@ const ERROR = {
   busy: "Refused: another scan is running.",
   wrong_state: "Refused: the scan is not in a state that allows this.",
   not_found: "Not found.",
-  unauthorized: "Refused: this daemon needs an access token.",
+  unauthorized: "Refused: this daemon needs an access token; sign in again.",
+  wrong_token: "That is not this daemon's access token.",
+  cross_origin: "Refused: the console session may only be used from the rig's own page.",
   disconnected: "The device is not connected.",
   timeout: "The rig did not answer in time.",
 };

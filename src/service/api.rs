@@ -1,7 +1,9 @@
 //! The HTTP API, versioned under `/api/v1`, plus `/metrics` and the web page at `/`.
 //!
 //! Errors are JSON: `{"error": {"code": "...", "message": "..."}}` with a 4xx/5xx status. When the
-//! daemon has a token, every route needs `Authorization: Bearer <token>`.
+//! daemon has a token, every route needs `Authorization: Bearer <token>` or the session cookie a
+//! browser gets by signing in with the token (`POST /api/v1/session`, see [`super::session`]);
+//! only the page itself (`/`, `/web/...`) and `/api/v1/session` are open.
 
 use std::convert::Infallible;
 use std::sync::{Arc, RwLock};
@@ -23,6 +25,7 @@ use super::console;
 use super::jobs::{JobError, Jobs, ReprocessRequest, StartRequest};
 use super::metrics::Metrics;
 use super::rig::{error_chain, RigError, RigHandle};
+use super::session::{self, Sessions};
 use super::store::{valid_id, StoreError};
 use crate::config::RigConfig;
 
@@ -48,6 +51,10 @@ pub struct AppState {
     pub started: Instant,
     /// The live camera frames every MJPEG viewer shares.
     pub camera: Arc<super::camera::LiveCamera>,
+    /// Browsers signed in with the token (the console's cookie sessions).
+    pub sessions: Arc<Sessions>,
+    /// Held while a sign-in is checked, so that wrong tokens are tried at most one a second.
+    pub sign_in_gate: Arc<tokio::sync::Mutex<()>>,
 }
 
 impl AppState {
@@ -122,6 +129,7 @@ pub fn router(state: AppState) -> Router {
         .route("/scans/{id}/cancel", post(cancel_scan))
         .route("/scans/{id}/reprocess", post(reprocess_scan))
         .route("/methods", get(list_methods))
+        .route("/session", get(session_state).post(sign_in).delete(sign_out))
         .route("/scans/{id}/files/{*path}", get(scan_file))
         .route("/scans/{id}/live.ply", get(live_model))
         .route("/events", get(events))
@@ -207,18 +215,99 @@ async fn guard(State(state): State<AppState>, req: Request, next: Next) -> Respo
         }
         _ => {}
     }
-    if let Some(token) = &state.token {
-        let given = req
-            .headers()
-            .get(header::AUTHORIZATION)
-            .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "));
-        if !given.is_some_and(|g| constant_time_eq(g.as_bytes(), token.as_bytes())) {
-            return ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "a valid bearer token is required")
+    let path = req.uri().path();
+    let open = path == "/" || path.starts_with("/web/") || path == "/api/v1/session";
+    if let (Some(token), false) = (&state.token, open) {
+        if !bearer_is(req.headers(), token) {
+            if !session::cookie(req.headers()).is_some_and(|id| state.sessions.valid(id)) {
+                return ApiError::new(
+                    StatusCode::UNAUTHORIZED,
+                    "unauthorized",
+                    "a valid bearer token (or a console session: sign in on the page) is required",
+                )
                 .into_response();
+            }
+            // A cookie is sent by the browser on its own; a change made with it must come from
+            // the daemon's own page (SameSite=Strict already keeps other sites' requests out).
+            let safe = matches!(*req.method(), axum::http::Method::GET | axum::http::Method::HEAD);
+            if !safe && !session::same_origin(req.headers()) {
+                return cross_origin().into_response();
+            }
         }
     }
     next.run(req).await
+}
+
+/// Whether the request carries `Authorization: Bearer <token>`.
+fn bearer_is(headers: &axum::http::HeaderMap, token: &str) -> bool {
+    let given =
+        headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "));
+    given.is_some_and(|g| constant_time_eq(g.as_bytes(), token.as_bytes()))
+}
+
+fn cross_origin() -> ApiError {
+    ApiError::new(
+        StatusCode::FORBIDDEN,
+        "cross_origin",
+        "a console session may only be used from the daemon's own page",
+    )
+}
+
+/// `GET /api/v1/session`: whether this daemon needs a sign-in and whether the caller has one.
+async fn session_state(State(s): State<AppState>, headers: axum::http::HeaderMap) -> Json<serde_json::Value> {
+    let authenticated = match &s.token {
+        None => true,
+        Some(t) => bearer_is(&headers, t) || session::cookie(&headers).is_some_and(|id| s.sessions.valid(id)),
+    };
+    Json(json!({"required": s.token.is_some(), "authenticated": authenticated}))
+}
+
+/// The body of `POST /api/v1/session`.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SignIn {
+    /// The daemon's bearer token (surrounding white space is ignored, as in token files).
+    token: String,
+}
+
+/// `POST /api/v1/session {"token": "..."}`: sign a browser in. The right token answers with the
+/// session cookie; a wrong one answers 401 after a second (one attempt at a time).
+async fn sign_in(
+    State(s): State<AppState>,
+    headers: axum::http::HeaderMap,
+    body: Result<Json<SignIn>, JsonRejection>,
+) -> Result<Response, ApiError> {
+    let Json(body) = body?;
+    let Some(token) = &s.token else {
+        return Ok(Json(json!({"required": false, "authenticated": true})).into_response());
+    };
+    if !session::same_origin(&headers) {
+        return Err(cross_origin());
+    }
+    let _one_at_a_time = s.sign_in_gate.lock().await;
+    if !constant_time_eq(body.token.trim().as_bytes(), token.as_bytes()) {
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        return Err(ApiError::new(StatusCode::UNAUTHORIZED, "wrong_token", "that is not this daemon's access token"));
+    }
+    let id = s.sessions.create().map_err(|e| {
+        ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", format!("cannot make a session id: {e}"))
+    })?;
+    tracing::info!(sessions = s.sessions.len(), "console signed in");
+    Ok(([(header::SET_COOKIE, session::set_cookie(&id))], Json(json!({"required": true, "authenticated": true})))
+        .into_response())
+}
+
+/// `DELETE /api/v1/session`: sign out (ends the caller's session and clears its cookie).
+async fn sign_out(State(s): State<AppState>, headers: axum::http::HeaderMap) -> Response {
+    if let Some(id) = session::cookie(&headers) {
+        s.sessions.end(id);
+    }
+    let authenticated = s.token.as_deref().is_none_or(|t| bearer_is(&headers, t));
+    (
+        [(header::SET_COOKIE, session::clear_cookie())],
+        Json(json!({"required": s.token.is_some(), "authenticated": authenticated})),
+    )
+        .into_response()
 }
 
 /// Whether `given` equals `secret`, in a time that depends only on `secret`'s length (never on

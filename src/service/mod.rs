@@ -18,6 +18,7 @@ pub mod metrics;
 pub mod notify;
 pub mod replication;
 pub mod rig;
+pub mod session;
 pub mod state_lock;
 pub mod store;
 pub mod token;
@@ -195,6 +196,8 @@ pub async fn run(
         shutdown: token.clone(),
         started: Instant::now(),
         camera,
+        sessions: Arc::new(session::Sessions::new()),
+        sign_in_gate: Arc::new(tokio::sync::Mutex::new(())),
     };
     let listener = tokio::net::TcpListener::bind(opts.listen)
         .await
