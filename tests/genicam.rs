@@ -1,13 +1,16 @@
 //! The GenICam camera driver through the real Aravis library against Aravis' fake GigE Vision camera
 //! (`arv-fake-gv-camera-0.8`, Debian `aravis-tools`) on loopback: settings read back, software and
-//! line triggers, disconnect and reconnect through the device trait, and real scans through the
-//! real binary, one of them with the camera killed half-way.
+//! line triggers, disconnect and reconnect through the device trait, real scans through the real
+//! binary, one of them with the camera killed half-way, and the same kill under the real daemon,
+//! which reconnects the camera when it returns and resumes the failed scan.
 //!
 //! GigE Vision discovery broadcasts on every network interface, so each test re-runs itself in a
 //! private network namespace that has only loopback (`unshare --net`, as root) and starts its own
 //! fake camera there: nothing leaves the machine and tests do not see each other's cameras.
 
 #![cfg(feature = "aravis")]
+
+mod daemon_common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -43,6 +46,8 @@ fn private_network(test: &str) -> bool {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{test} in a private network namespace failed:\n{stdout}\n{stderr}");
     assert!(stdout.contains("1 passed"), "{test} did not run in the namespace:\n{stdout}\n{stderr}");
+    // The figures the test printed there (shown with --nocapture).
+    print!("{stdout}");
     false
 }
 
@@ -396,5 +401,99 @@ fn scanrig_devices_lists_the_camera_with_its_rig_lines() {
     assert!(
         text.contains("kind = \"genicam\"\n    vendor = \"Aravis\"\n    model = \"Fake\"\n    serial = \"SR0042\""),
         "{text}"
+    );
+}
+
+/// `(state, reconnects, last_error)` of device `name` in `GET /api/v1/devices`.
+fn device(c: &scanrig::service::client::Client, name: &str) -> (String, u64, String) {
+    let v = c.get_json("/api/v1/devices").expect("devices");
+    let d = v["devices"].as_array().and_then(|a| a.iter().find(|d| d["name"] == name)).cloned().unwrap_or_default();
+    (
+        d["state"].as_str().unwrap_or("").to_owned(),
+        d["reconnects"].as_u64().unwrap_or(0),
+        d["last_error"].as_str().unwrap_or("").to_owned(),
+    )
+}
+
+#[test]
+fn the_daemon_fails_a_scan_when_the_camera_vanishes_and_reconnects_it_when_it_returns() {
+    if !private_network("the_daemon_fails_a_scan_when_the_camera_vanishes_and_reconnects_it_when_it_returns") {
+        return;
+    }
+    let mut fake = FakeCamera::start("SR0001");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rig = write_rig(dir.path(), 24, true);
+    let mut d = daemon_common::spawn(&rig, dir.path());
+    let c = daemon_common::client(&d);
+    daemon_common::wait_for("the camera connected", Duration::from_secs(20), || device(&c, "camera").0 == "connected");
+
+    let id =
+        c.post_json("/api/v1/scans", &serde_json::json!({})).expect("start")["id"].as_str().expect("id").to_owned();
+    let out = dir.path().join("scans").join(&id);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !out.join("frames/pos_002.json").exists() && daemon_common::scan_meta(&c, &id)["status"] == "running" {
+        assert!(Instant::now() < deadline, "no third frame in 30 s:\n{}", d.log());
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let meta = daemon_common::scan_meta(&c, &id);
+    assert_eq!(meta["status"], "running", "the scan ended before the camera was killed: {meta}\n{}", d.log());
+    fake.kill();
+
+    // The scan fails with the camera's disconnect in words; every frame it captured is on disk.
+    let meta = daemon_common::wait_finished(&c, &id, Duration::from_secs(30));
+    assert_eq!(meta["status"], "failed", "{meta}");
+    let error = meta["error"].as_str().unwrap_or("");
+    assert!(error.contains("camera: disconnected"), "not a typed camera disconnect: {error}");
+    let kept = frames_on_disk(&out);
+    assert!((3..24).contains(&kept.len()), "{} frames kept", kept.len());
+    assert!(!out.join("report.json").exists(), "no report for a failed scan");
+    let pngs = daemon_common::frames_on_disk(dir.path(), &id).iter().filter(|f| f.ends_with(".png")).count();
+    assert_eq!(pngs, kept.len(), "a frame image without its metadata");
+    let kept_bytes: Vec<Vec<u8>> = (0..kept.len())
+        .map(|p| std::fs::read(out.join(format!("frames/pos_{p:03}.png"))).expect("kept frame"))
+        .collect();
+
+    // The camera is shown gone, with why; the daemon stays up.
+    daemon_common::wait_for("the camera shown disconnected", Duration::from_secs(20), || {
+        let (state, _, e) = device(&c, "camera");
+        state == "disconnected" && e.contains("camera: disconnected")
+    });
+    // Every capture the driver delivered before the kill is one of the kept frames (the closing line
+    // of the connection the scan used).
+    let log = d.log();
+    assert_eq!(closing_count(&log, "delivered") as usize, kept.len(), "{log}");
+    assert_eq!(device(&c, "camera").1, 0, "no reconnection yet");
+    assert!(d.alive());
+    println!("devices while the camera is gone: {}", c.get_json("/api/v1/devices").expect("devices"));
+
+    // The camera comes back (same serial): the daemon reconnects it by itself.
+    let _back = FakeCamera::start("SR0001");
+    let returned = Instant::now();
+    daemon_common::wait_for("the camera reconnected", Duration::from_secs(30), || {
+        device(&c, "camera").0 == "connected"
+    });
+    println!("reconnected {:.1} s after the camera returned", returned.elapsed().as_secs_f64());
+    let (_, reconnects, last_error) = device(&c, "camera");
+    assert_eq!((reconnects, last_error.as_str()), (1, ""));
+
+    // The failed scan resumes on the returned camera and completes: the kept frames are reused as
+    // they were, the rest captured now.
+    c.post_json(&format!("/api/v1/scans/{id}/resume"), &serde_json::json!({})).expect("resume");
+    let meta = daemon_common::wait_finished(&c, &id, Duration::from_secs(30));
+    assert_eq!(meta["status"], "complete", "{meta}");
+    assert_eq!(meta["resumes"], 1, "{meta}");
+    let frames = frames_on_disk(&out);
+    assert_eq!(frames.len(), 24, "{frames:?}");
+    for (p, bytes) in kept_bytes.iter().enumerate() {
+        let now = std::fs::read(out.join(format!("frames/pos_{p:03}.png"))).expect("frame");
+        assert!(now == *bytes, "kept frame {p} was changed by the resume");
+    }
+    assert_eq!(&frames[..kept.len()], &kept[..], "kept frames' metadata unchanged");
+    assert!(out.join("report.json").is_file());
+    assert_eq!(device(&c, "camera").1, 1, "one reconnection");
+    assert!(d.alive());
+    println!(
+        "camera killed after {} of 24 frames; scan failed with: {error}; reconnected once; resumed to 24 frames",
+        kept.len()
     );
 }

@@ -1,12 +1,15 @@
 //! The window projector against a real X server: Xvfb with two screens, the window full-screen on
 //! the second, every pattern of a Gray-code sequence read back from the server with `xwd` and
 //! compared pixel for pixel, the refresh period measured from the server's presentation times, and
-//! the server killed under it, also in the middle of a structured-light scan through the real binary.
+//! the server killed under it, also in the middle of a structured-light scan through the real binary
+//! and under the real daemon, which reconnects the projector when the server returns.
 //!
 //! The test starts Xvfb itself (Debian `xvfb`; `xwd` from `x11-apps`) on a display number Xvfb picks
 //! (`-displayfd`), listening on its Unix socket only.
 
 #![cfg(feature = "x11")]
+
+mod daemon_common;
 
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
@@ -30,7 +33,14 @@ impl Xvfb {
     }
 
     fn start_with(screens: &[&str]) -> Self {
+        Self::start_on(None, screens)
+    }
+
+    /// Xvfb on `display` (`:N`), or on a display number it picks; returns once it accepts
+    /// connections (it writes its number to `-displayfd` then).
+    fn start_on(display: Option<&str>, screens: &[&str]) -> Self {
         let mut child = Command::new("Xvfb")
+            .args(display)
             .args(["-displayfd", "1", "-nolisten", "tcp", "-noreset"])
             .args(screens)
             .stdout(Stdio::piped())
@@ -245,4 +255,113 @@ fn killing_the_x_server_mid_scan_fails_the_scan_typed_and_keeps_the_frames() {
         views += 1;
     }
     assert!((2..16).contains(&views), "{views} views kept");
+}
+
+/// The shipped structured-light rig with the window projector on `display`'s screen 1 (512x384)
+/// and a coarse grid, written to `dir/window.toml`.
+fn window_rig(dir: &std::path::Path, display: &str, positions: u32) -> std::path::PathBuf {
+    let shipped = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigs/structured-light.toml");
+    let text = std::fs::read_to_string(&shipped).expect("structured-light rig");
+    let sim_projector = "[projector]\nkind = \"sim\"\nwidth = 512\nheight = 384\nintensity = 1.0\nlatency_ms = 30.0\nframe_period_ms = 16.667\n";
+    assert!(text.contains(sim_projector), "the shipped rig changed; update this test");
+    assert!(text.contains("positions = 16\n"), "the shipped rig changed; update this test");
+    let window = format!(
+        "[projector]\nkind = \"window\"\ndisplay = \"{display}\"\noutput = \"screen:1\"\nwidth = 512\nheight = 384\n"
+    );
+    let rig = dir.join("window.toml");
+    let text = text
+        .replace(sim_projector, &window)
+        .replace("resolution = 128", "resolution = 32")
+        .replace("positions = 16\n", &format!("positions = {positions}\n"));
+    std::fs::write(&rig, text).expect("write rig");
+    rig
+}
+
+/// `(state, reconnects, last_error)` of device `name` in `GET /api/v1/devices`.
+fn device(c: &scanrig::service::client::Client, name: &str) -> (String, u64, String) {
+    let v = c.get_json("/api/v1/devices").expect("devices");
+    let d = v["devices"].as_array().and_then(|a| a.iter().find(|d| d["name"] == name)).cloned().unwrap_or_default();
+    (
+        d["state"].as_str().unwrap_or("").to_owned(),
+        d["reconnects"].as_u64().unwrap_or(0),
+        d["last_error"].as_str().unwrap_or("").to_owned(),
+    )
+}
+
+/// The complete views of a scan directory (record written after its 20 frames), each frame read.
+fn complete_views(out: &std::path::Path) -> Vec<Vec<Vec<u8>>> {
+    let mut views = Vec::new();
+    while out.join(format!("frames/pos_{:03}.json", views.len())).exists() {
+        let v = views.len();
+        let frames: Vec<Vec<u8>> = (0..20)
+            .map(|k| {
+                let path = out.join(format!("frames/pos_{v:03}_pattern_{k:02}.png"));
+                let img = image::open(&path).expect("kept frame decodes");
+                assert_eq!(img.width(), 400);
+                std::fs::read(&path).expect("frame")
+            })
+            .collect();
+        views.push(frames);
+    }
+    views
+}
+
+#[test]
+fn the_daemon_fails_a_scan_when_the_x_server_dies_and_reconnects_the_projector_when_it_returns() {
+    const SCREENS: [&str; 6] = ["-screen", "0", "640x480x24", "-screen", "1", "512x384x24"];
+    let mut x = Xvfb::start_with(&SCREENS);
+    let display = x.display.clone();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rig = window_rig(dir.path(), &display, 6);
+    let mut d = daemon_common::spawn(&rig, dir.path());
+    let c = daemon_common::client(&d);
+    daemon_common::wait_for("the projector connected", Duration::from_secs(20), || {
+        device(&c, "projector").0 == "connected"
+    });
+
+    let id =
+        c.post_json("/api/v1/scans", &serde_json::json!({})).expect("start")["id"].as_str().expect("id").to_owned();
+    let out = dir.path().join("scans").join(&id);
+    // Two whole views on disk, then the X server goes.
+    daemon_common::wait_for("a second view", Duration::from_secs(60), || out.join("frames/pos_001.json").exists());
+    x.kill();
+
+    let meta = daemon_common::wait_finished(&c, &id, Duration::from_secs(30));
+    assert_eq!(meta["status"], "failed", "{meta}");
+    let error = meta["error"].as_str().unwrap_or("");
+    assert!(error.contains("projector: disconnected"), "not a typed projector disconnect: {error}");
+    assert!(!out.join("report.json").exists(), "no report for a failed scan");
+    let kept = complete_views(&out);
+    assert!((2..6).contains(&kept.len()), "{} views kept", kept.len());
+
+    daemon_common::wait_for("the projector shown disconnected", Duration::from_secs(20), || {
+        let (state, _, e) = device(&c, "projector");
+        state == "disconnected" && e.contains("projector: disconnected")
+    });
+    assert_eq!(device(&c, "projector").1, 0, "no reconnection yet");
+    assert!(d.alive());
+
+    // The X server comes back on the same display: the daemon reconnects the projector by itself.
+    let _back = Xvfb::start_on(Some(&display), &SCREENS);
+    daemon_common::wait_for("the projector reconnected", Duration::from_secs(30), || {
+        device(&c, "projector").0 == "connected"
+    });
+    let (_, reconnects, last_error) = device(&c, "projector");
+    assert_eq!((reconnects, last_error.as_str()), (1, ""));
+
+    // The failed scan resumes on the new window and completes, reusing the kept views as they were.
+    c.post_json(&format!("/api/v1/scans/{id}/resume"), &serde_json::json!({})).expect("resume");
+    let meta = daemon_common::wait_finished(&c, &id, Duration::from_secs(60));
+    assert_eq!(meta["status"], "complete", "{meta}");
+    assert_eq!(meta["resumes"], 1, "{meta}");
+    let views = complete_views(&out);
+    assert_eq!(views.len(), 6);
+    assert!(views[..kept.len()] == kept[..], "a kept view was changed by the resume");
+    assert!(out.join("report.json").is_file());
+    assert_eq!(device(&c, "projector").1, 1, "one reconnection");
+    assert!(d.alive());
+    println!(
+        "X server killed after {} of 6 views; scan failed with: {error}; reconnected once; resumed to 6 views",
+        kept.len()
+    );
 }
