@@ -33,35 +33,56 @@ fn data_dir() -> Option<PathBuf> {
     None
 }
 
+/// `scanrig reconstruct` with the defaults of `[reconstruction.photo]` (the threshold derived from
+/// the measured noise): the photo methods keep the plain hull's silhouette IoU and lower its
+/// photometric re-projection error.
 #[test]
 fn dino_photo_carving_reprojects_better_than_the_hull() {
     let Some(dir) = data_dir() else { return };
-    let out = tempfile::tempdir().expect("tempdir");
     let resolution = if cfg!(debug_assertions) { "64" } else { "128" };
-    let output = Command::new(env!("CARGO_BIN_EXE_scanrig"))
-        .args(["reconstruct", "--method", "space-carving-photo", "--resolution", resolution])
-        // The defaults of `[reconstruction.photo]` (threshold 22, min_cos 0.4), as on the simulated rigs.
-        .arg("--dataset")
-        .arg(&dir)
-        .arg("--views")
-        .arg(dir.join("dinoSR_good_silhouette_images.txt"))
-        .arg("--out")
-        .arg(out.path())
-        .output()
-        .expect("run scanrig");
-    assert!(output.status.success(), "reconstruct failed: {}", String::from_utf8_lossy(&output.stderr));
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.path().join("report.json")).expect("report")).expect("JSON");
-    let model = report["photo"]["reprojection_error"].as_f64().expect("photo.reprojection_error");
-    let hull = report["visual_hull"]["reprojection_error"].as_f64().expect("visual_hull.reprojection_error");
-    println!(
-        "dino {resolution}^3: photometric re-projection error {model:.2} (visual hull coloured the same way {hull:.2}), \
-         carved {} of {} hull voxels, mean silhouette IoU {}",
-        report["photo"]["carved"], report["visual_hull"]["voxels"], report["reprojection_iou_mean"]
-    );
-    assert!(model < hull, "photo carving {model} is not below the hull's {hull}");
-    // Carving must not eat the object: silhouettes still match.
-    assert!(report["reprojection_iou_mean"].as_f64().expect("iou") > 0.9);
+    let run_with = |method: &str, extra: &[&str]| {
+        let out = tempfile::tempdir().expect("tempdir");
+        let output = Command::new(env!("CARGO_BIN_EXE_scanrig"))
+            .args(["reconstruct", "--method", method, "--resolution", resolution])
+            .args(extra)
+            .arg("--dataset")
+            .arg(&dir)
+            .arg("--views")
+            .arg(dir.join("dinoSR_good_silhouette_images.txt"))
+            .arg("--out")
+            .arg(out.path())
+            .output()
+            .expect("run scanrig");
+        assert!(output.status.success(), "{method} failed: {}", String::from_utf8_lossy(&output.stderr));
+        let report: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.path().join("report.json")).expect("report")).expect("JSON");
+        report
+    };
+    let run = |method: &str| run_with(method, &[]);
+    let hull_iou = run("space-carving")["reprojection_iou_mean"].as_f64().expect("iou");
+    for method in ["space-carving-photo", "voxel-coloring"] {
+        let report = run(method);
+        let model = report["photo"]["reprojection_error"].as_f64().expect("photo.reprojection_error");
+        let hull = report["visual_hull"]["reprojection_error"].as_f64().expect("visual_hull.reprojection_error");
+        let iou = report["reprojection_iou_mean"].as_f64().expect("iou");
+        println!(
+            "dino {resolution}^3 {method}: measured threshold {} levels ({}), {} views, photometric re-projection \
+             error {model:.2} (visual hull coloured the same way {hull:.2}), carved {} of {} hull voxels, mean \
+             silhouette IoU {iou:.4} (plain hull {hull_iou:.4})",
+            report["photo"]["threshold"],
+            report["photo"]["measured_noise"],
+            report["photo"]["views"],
+            report["photo"]["carved"],
+            report["visual_hull"]["voxels"]
+        );
+        assert!(report["photo"]["measured_noise"].is_object(), "{method}: the default threshold is measured");
+        assert!(model < hull, "{method}: photo carving {model} is not below the hull's {hull}");
+        assert!(iou >= hull_iou, "{method}: IoU {iou} below the plain hull's {hull_iou}");
+    }
+    // A fixed threshold is still there for the asking.
+    let fixed = run_with("space-carving-photo", &["--photo", "threshold=22"]);
+    assert_eq!(fixed["photo"]["threshold"].as_f64(), Some(22.0));
+    assert!(fixed["photo"].get("measured_noise").is_none(), "{}", fixed["photo"]);
 }
 
 fn mean_iou(occupancy: &Occupancy, views: &[View<'_>]) -> f64 {

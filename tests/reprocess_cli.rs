@@ -131,3 +131,111 @@ fn photo_carving_runs_on_a_silhouette_scan_and_bad_reprocess_requests_are_refuse
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("pos_003.png"), "{}", String::from_utf8_lossy(&out.stderr));
 }
+
+/// The stored scan's camera (intrinsics and rig -> camera pose) as an OpenCV FileStorage file, YAML
+/// or XML, written by hand the way OpenCV's calibration sample writes its keys (`camera_matrix`,
+/// `distortion_coefficients`, pixel centres at integers) plus the pose `R`, `T` (metres); `fx_scale`
+/// scales the focal lengths.
+fn opencv_camera_file(model: &scanrig::geometry::CameraModel, xml: bool, fx_scale: f64) -> String {
+    let i = model.intrinsics;
+    let d = i.distortion();
+    let k = [i.fx * fx_scale, i.skew, i.cx - 0.5, 0.0, i.fy * fx_scale, i.cy - 0.5, 0.0, 0.0, 1.0];
+    let r = model.pose.rotation;
+    let rows: Vec<f64> = (0..3).flat_map(|a| (0..3).map(move |b| r[(a, b)])).collect();
+    let t = model.pose.translation;
+    let list = |v: &[f64], sep: &str| v.iter().map(|x| format!("{x:.17e}")).collect::<Vec<_>>().join(sep);
+    let (w, h) = (model.width, model.height);
+    if xml {
+        let m = |name: &str, r: usize, c: usize, v: &[f64]| {
+            format!("<{name} type_id=\"opencv-matrix\">\n  <rows>{r}</rows>\n  <cols>{c}</cols>\n  <dt>d</dt>\n  <data>\n    {}</data></{name}>\n", list(v, " "))
+        };
+        format!(
+            "<?xml version=\"1.0\"?>\n<opencv_storage>\n<image_width>{w}</image_width>\n<image_height>{h}</image_height>\n{}{}{}{}</opencv_storage>\n",
+            m("camera_matrix", 3, 3, &k),
+            m("distortion_coefficients", 5, 1, &d),
+            m("R", 3, 3, &rows),
+            m("T", 3, 1, &[t[0], t[1], t[2]])
+        )
+    } else {
+        let m = |name: &str, r: usize, c: usize, v: &[f64]| {
+            format!("{name}: !!opencv-matrix\n   rows: {r}\n   cols: {c}\n   dt: d\n   data: [ {} ]\n", list(v, ", "))
+        };
+        format!(
+            "%YAML:1.0\n---\nimage_width: {w}\nimage_height: {h}\n{}{}{}{}",
+            m("camera_matrix", 3, 3, &k),
+            m("distortion_coefficients", 1, 5, &d),
+            m("R", 3, 3, &rows),
+            m("T", 3, 1, &[t[0], t[1], t[2]])
+        )
+    }
+}
+
+#[test]
+fn an_opencv_camera_file_calibrates_a_stored_scan_like_the_native_calibration() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rig = derived_rig(
+        dir.path(),
+        "config/rigs/simulated.toml",
+        &[("positions = 24", "positions = 8"), ("resolution = 128", "resolution = 40")],
+    );
+    let scan = dir.path().join("scan");
+    let original = scan_common::run_scan(&rig, &scan);
+    let model = scanrig::rigfile::load(&scan.join("rig.toml")).expect("stored rig").camera.model();
+    let yaml = dir.path().join("camera.yaml");
+    let xml = dir.path().join("camera.xml");
+    let wrong = dir.path().join("wrong.yaml");
+    std::fs::write(&yaml, opencv_camera_file(&model, false, 1.0)).expect("yaml");
+    std::fs::write(&xml, opencv_camera_file(&model, true, 1.0)).expect("xml");
+    std::fs::write(&wrong, opencv_camera_file(&model, false, 1.1)).expect("yaml");
+
+    // `reconstruct --scan --calibration FILE`: the same result as the stored (native) calibration,
+    // and a different one from a file with other focal lengths (the file is really used).
+    for (file, same) in [(&yaml, true), (&xml, true), (&wrong, false)] {
+        let out = dir.path().join(format!("out-{}", file.file_name().and_then(|n| n.to_str()).expect("name")));
+        let o = reconstruct(&scan, &out, &["--calibration", file.to_str().expect("utf-8")]);
+        assert!(o.status.success(), "{}: {}", file.display(), String::from_utf8_lossy(&o.stderr));
+        let r = report(&out);
+        assert_eq!(
+            figures(&r) == figures(&original),
+            same,
+            "{}: {} vs {}",
+            file.display(),
+            figures(&r),
+            figures(&original)
+        );
+    }
+
+    // A rig file whose `[rig] calibration` names the XML file: the stored rig with its camera's
+    // focal length spoiled reconstructs like the original once the file is applied.
+    let copy = dir.path().join("copy");
+    std::fs::create_dir_all(&copy).expect("mkdir");
+    let status = std::process::Command::new("cp").arg("-a").arg(scan.join("frames")).arg(&copy).status().expect("cp");
+    assert!(status.success());
+    let text = std::fs::read_to_string(scan.join("rig.toml")).expect("rig.toml");
+    let fx = format!("fx = {:?}", model.intrinsics.fx);
+    assert!(text.contains(&fx), "{fx} not in the stored rig file");
+    let spoiled = text.replacen(&fx, &format!("fx = {:?}", model.intrinsics.fx * 1.2), 1).replacen(
+        "[rig]\n",
+        "[rig]\ncalibration = \"../camera.xml\"\n",
+        1,
+    );
+    assert!(spoiled.contains("calibration = \"../camera.xml\""));
+    std::fs::write(copy.join("rig.toml"), &spoiled).expect("write");
+    let out = dir.path().join("from-rig-file");
+    let o = reconstruct(&copy, &out, &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(figures(&report(&out)), figures(&original), "rig file naming camera.xml");
+    // Without the file the spoiled focal length gives another result.
+    std::fs::write(copy.join("rig.toml"), spoiled.replacen("calibration = \"../camera.xml\"\n", "", 1)).expect("write");
+    let out = dir.path().join("spoiled");
+    let o = reconstruct(&copy, &out, &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_ne!(figures(&report(&out)), figures(&original), "the spoiled rig differs");
+
+    // A file for another image size is refused naming the file and the key.
+    std::fs::write(&wrong, opencv_camera_file(&model, false, 1.0).replacen("image_width: ", "image_width: 1", 1))
+        .expect("yaml");
+    let o = reconstruct(&scan, &dir.path().join("bad"), &["--calibration", wrong.to_str().expect("utf-8")]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("wrong.yaml") && err.contains("image_width"), "{err}");
+}

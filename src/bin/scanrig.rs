@@ -168,7 +168,7 @@ enum Command {
         /// A stored scan directory (with `rig.toml` and `frames/`), e.g. a `scan --out` directory,
         /// or a replicated scan in object storage, `s3://BUCKET/PREFIX/RIG/SCAN` (downloaded and
         /// checked against its manifest; the result is also uploaded to `SCAN/reprocess-TIME/`).
-        #[arg(long, conflicts_with_all = ["dataset", "bbox", "calibration", "views", "masks", "silhouette"])]
+        #[arg(long, conflicts_with_all = ["dataset", "bbox", "views", "masks", "silhouette"])]
         scan: Option<PathBuf>,
         /// For an `s3://` scan: a file with a `[replication]` section giving the endpoint, region,
         /// allow_http and credentials (default: the AWS_* environment variables).
@@ -187,7 +187,11 @@ enum Command {
         /// Working volume xmin,ymin,zmin,xmax,ymax,zmax in metres (default: estimated from the views).
         #[arg(long, allow_hyphen_values = true)]
         bbox: Option<String>,
-        /// Calibration file (default: the one `*_par.txt` in the data set directory).
+        /// Calibration file. With --dataset: Middlebury `*_par.txt`, projection matrices or a COLMAP
+        /// model (default: the one `*_par.txt` in the data set directory). With --scan: a calibration
+        /// file of `scanrig calibrate` or an OpenCV FileStorage camera file (YAML or XML:
+        /// camera_matrix, distortion_coefficients, optional pose R, T in metres) applied over the
+        /// stored rig's camera, as a rig file's `[rig] calibration` is.
         #[arg(long)]
         calibration: Option<PathBuf>,
         /// Views to use: a file with one image name per line, or a comma-separated list.
@@ -591,7 +595,17 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             println!("{}: ok", rig.display());
             Ok(())
         }
-        Command::Reconstruct { scan: Some(scan_arg), method, resolution, smooth, photo, out, replication, .. } => {
+        Command::Reconstruct {
+            scan: Some(scan_arg),
+            method,
+            resolution,
+            smooth,
+            photo,
+            out,
+            replication,
+            calibration,
+            ..
+        } => {
             let remote = match scan_arg.to_str().filter(|s| s.starts_with("s3://")) {
                 Some(url) => Some(fetch_remote(url, replication.as_deref())?),
                 None => None,
@@ -599,6 +613,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let scan_dir = remote_dir(&remote).unwrap_or_else(|| scan_arg.clone());
             let mut config = scanrig::rigfile::load(&scan_dir.join(scan::driver::RIG_FILE))
                 .with_context(|| format!("{} is not a stored scan", scan_dir.display()))?;
+            if let Some(c) = &calibration {
+                scanrig::calibration::file::apply_to_rig(c, &mut config)
+                    .with_context(|| format!("--calibration {}", c.display()))?;
+            }
             if let Some(m) = method {
                 config.reconstruction.method = m;
             }

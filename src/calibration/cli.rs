@@ -80,8 +80,9 @@ pub enum CalibrateCommand {
         #[arg(long, default_value_t = 0.0)]
         board_height_mm: f64,
     },
-    /// A laser plane (camera frame) from a chessboard under the laser: laser-on / laser-off frame
-    /// pairs of the board at two or more poses, the camera's intrinsics known.
+    /// Laser planes (camera frame) from a chessboard under the lasers: laser-on / laser-off frame
+    /// pairs of the board at two or more poses, the camera's intrinsics known. Every plane that two
+    /// poses' stripes share is fitted (several lasers may be on), ordered left to right.
     Laser {
         /// Camera intrinsics: a calibration file with `[camera]` or an OpenCV FileStorage YAML/XML
         /// (default: `--out`).
@@ -112,7 +113,8 @@ pub enum CalibrateCommand {
         /// Plane-fit inlier distance, millimetres.
         #[arg(long, default_value_t = 1.0)]
         inlier_mm: f64,
-        /// Index of the laser in the rig (the `[[lasers]]` entry to write).
+        /// Index of the first `[[lasers]]` entry to write (the planes found go to this index and the
+        /// following ones, left to right).
         #[arg(long, default_value_t = 0)]
         index: usize,
         /// A published plane nx,ny,nz,d (camera frame, d in millimetres) to compare with.
@@ -377,6 +379,9 @@ pub fn load_intrinsics(path: &Path) -> Result<(Intrinsics, Option<(u32, u32)>), 
     Ok((cam.intrinsics(), Some((cam.width_px, cam.height_px))))
 }
 
+/// Stripe points each of two board poses must give a laser plane.
+const MIN_POINTS_PER_POSE: usize = 30;
+
 /// Inputs of `calibrate laser`.
 struct LaserJob {
     intrinsics: Intrinsics,
@@ -409,7 +414,7 @@ fn chain(e: &dyn std::error::Error) -> String {
 }
 
 fn calibrate_laser_command(job: LaserJob) -> Result<(), WorkflowError> {
-    use super::laser_board::{board_laser_view, fit_laser_plane, read_ply_xyz};
+    use super::laser_board::{board_laser_view, fit_laser_planes, read_ply_xyz};
     let mut views = Vec::new();
     for ((on, off), pattern) in job.pairs.iter().zip(&job.patterns) {
         let v = board_laser_view(&job.intrinsics, &job.board, on, off, pattern.as_deref(), job.colour, &job.stripe)
@@ -445,56 +450,69 @@ fn calibrate_laser_command(job: LaserJob) -> Result<(), WorkflowError> {
                 .into(),
         });
     }
-    let fit = fit_laser_plane(&views, job.inlier_m).map_err(laser_error)?;
-    let p = fit.plane;
-    println!(
-        "laser plane (camera frame): n = ({:.5}, {:.5}, {:.5}), d = {:.3} mm; RMS {:.3} mm over {} of {} points",
-        p.normal[0],
-        p.normal[1],
-        p.normal[2],
-        1e3 * p.offset_m,
-        1e3 * fit.rms_m,
-        fit.inliers,
-        fit.points
-    );
+    let fits = fit_laser_planes(&views, job.inlier_m, MIN_POINTS_PER_POSE, 4).map_err(laser_error)?;
     let pts: Vec<Vector3<f64>> = views.iter().flat_map(|v| v.points.iter().copied()).collect();
-    let centroid = pts.iter().sum::<Vector3<f64>>() / pts.len().max(1) as f64;
-    if let Some(r) = &job.reference {
-        println!(
-            "vs published plane: {:.3} deg between the normals, {:.3} mm apart at the stripe points' centroid",
-            p.angle_deg(r),
-            1e3 * r.offset_at(&p, &centroid).unwrap_or(f64::NAN)
-        );
-    }
-    if let Some(path) = &job.reference_cloud {
-        let cloud: Vec<Vector3<f64>> = read_ply_xyz(path).map_err(laser_error)?.into_iter().map(|x| x * 1e-3).collect();
-        let stats = |pl: &crate::pipeline::laser::Plane| {
-            let d: Vec<f64> = cloud.iter().map(|x| pl.distance(x)).collect();
-            let mean = d.iter().sum::<f64>() / d.len().max(1) as f64;
-            let rms = (d.iter().map(|v| v * v).sum::<f64>() / d.len().max(1) as f64).sqrt();
-            (mean, rms)
-        };
-        let (mean, rms) = stats(&p);
-        println!(
-            "vs reference cloud ({} points): distance to our plane mean {:.3} mm, RMS {:.3} mm",
-            cloud.len(),
-            1e3 * mean,
-            1e3 * rms
-        );
-        if let Some(r) = &job.reference {
-            let (m2, r2) = stats(r);
-            println!("  (to the published plane: mean {:.3} mm, RMS {:.3} mm)", 1e3 * m2, 1e3 * r2);
+    let cloud = match &job.reference_cloud {
+        Some(path) => {
+            let c: Vec<Vector3<f64>> = read_ply_xyz(path).map_err(laser_error)?.into_iter().map(|x| x * 1e-3).collect();
+            Some((path, c))
         }
-    }
+        None => None,
+    };
+    let cloud_stats = |cloud: &[Vector3<f64>], pl: &crate::pipeline::laser::Plane| {
+        let d: Vec<f64> = cloud.iter().map(|x| pl.distance(x)).collect();
+        let mean = d.iter().sum::<f64>() / d.len().max(1) as f64;
+        let rms = (d.iter().map(|v| v * v).sum::<f64>() / d.len().max(1) as f64).sqrt();
+        (mean, rms)
+    };
     let mut file = CalibrationFile::load_or_default(&job.out)?;
-    file.lasers.retain(|l| l.index != job.index);
-    file.lasers.push(super::file::LaserSection {
-        index: job.index,
-        normal_camera: p.normal,
-        offset_camera_m: p.offset_m,
-        rms_m: fit.rms_m,
-        points: fit.inliers,
-    });
+    for (k, fit) in fits.iter().enumerate() {
+        let p = fit.plane;
+        let index = job.index + k;
+        let inl: Vec<&Vector3<f64>> = pts.iter().filter(|x| p.distance(x).abs() <= job.inlier_m).collect();
+        let poses = views.iter().filter(|v| v.points.iter().any(|x| p.distance(x).abs() <= job.inlier_m)).count();
+        println!(
+            "laser {index} plane (camera frame): n = ({:.5}, {:.5}, {:.5}), d = {:.3} mm; RMS {:.3} mm over {} of {} points from {} poses",
+            p.normal[0],
+            p.normal[1],
+            p.normal[2],
+            1e3 * p.offset_m,
+            1e3 * fit.rms_m,
+            fit.inliers,
+            fit.points,
+            poses
+        );
+        let centroid = inl.iter().copied().sum::<Vector3<f64>>() / inl.len().max(1) as f64;
+        if let Some(r) = &job.reference {
+            println!(
+                "  laser {index} vs published plane: {:.3} deg between the normals, {:.3} mm apart at its points' centroid",
+                p.angle_deg(r),
+                1e3 * r.offset_at(&p, &centroid).unwrap_or(f64::NAN)
+            );
+        }
+        if let Some((path, cloud)) = &cloud {
+            let (mean, rms) = cloud_stats(cloud, &p);
+            println!(
+                "  laser {index} vs reference cloud {} ({} points): distance to this plane mean {:.3} mm, RMS {:.3} mm",
+                path.display(),
+                cloud.len(),
+                1e3 * mean,
+                1e3 * rms
+            );
+            if let Some(r) = &job.reference {
+                let (m2, r2) = cloud_stats(cloud, r);
+                println!("    (to the published plane: mean {:.3} mm, RMS {:.3} mm)", 1e3 * m2, 1e3 * r2);
+            }
+        }
+        file.lasers.retain(|l| l.index != index);
+        file.lasers.push(super::file::LaserSection {
+            index,
+            normal_camera: p.normal,
+            offset_camera_m: p.offset_m,
+            rms_m: fit.rms_m,
+            points: fit.inliers,
+        });
+    }
     file.lasers.sort_by_key(|l| l.index);
     file.save(&job.out)?;
     println!("wrote {}", job.out.display());

@@ -370,8 +370,35 @@ fn grow(pts: &[Point2<f64>], seed: usize, a: usize, b: usize) -> Grid {
     grid
 }
 
-/// Grids grown from several seeds; the largest complete rectangle wins.
-fn best_grid(pts: &[Point2<f64>]) -> Option<(Grid, GridRange)> {
+/// The one `w` x `h` (or `h` x `w`) window of `grid` whose every cell is filled, restricted to it,
+/// when there is exactly one: the board, with clutter that happened to line up with its grid (an
+/// edge of the stand, a tile joint) left outside.
+fn board_window(grid: &Grid, (i0, i1, j0, j1): GridRange, w: i32, h: i32) -> Option<(Grid, GridRange)> {
+    let mut found = None;
+    let mut count = 0;
+    let sizes = if w == h { vec![(w, h)] } else { vec![(w, h), (h, w)] };
+    for (a, b) in sizes {
+        for si in i0..=i1 - a + 1 {
+            for sj in j0..=j1 - b + 1 {
+                if (si..si + a).all(|i| (sj..sj + b).all(|j| grid.contains_key(&(i, j)))) {
+                    count += 1;
+                    found = Some((si, si + a - 1, sj, sj + b - 1));
+                }
+            }
+        }
+    }
+    let (a0, a1, b0, b1) = found.filter(|_| count == 1)?;
+    let sub: Grid = grid
+        .iter()
+        .filter(|((i, j), _)| (a0..=a1).contains(i) && (b0..=b1).contains(j))
+        .map(|(k, v)| (*k, *v))
+        .collect();
+    Some((sub, (a0, a1, b0, b1)))
+}
+
+/// Grids grown from several seeds; the largest complete rectangle wins. A grid with holes (clutter
+/// grown onto the board's grid) counts when it holds exactly one complete `cols` x `rows` window.
+fn best_grid(pts: &[Point2<f64>], cols: usize, rows: usize) -> Option<(Grid, GridRange)> {
     let n = pts.len();
     if n < 4 {
         return None;
@@ -404,11 +431,20 @@ fn best_grid(pts: &[Point2<f64>]) -> Option<(Grid, GridRange)> {
             j0 = j0.min(j);
             j1 = j1.max(j);
         }
-        // Keep the largest fully filled rectangle (a hole means a mismatch).
+        // Keep the largest fully filled rectangle (a hole means a mismatch, unless the board's
+        // window inside is complete and unique).
         let complete = grid.len() == ((i1 - i0 + 1) * (j1 - j0 + 1)) as usize;
-        let size = if complete { grid.len() } else { 0 };
+        let (grid, range, size) = if complete {
+            let n = grid.len();
+            (grid, (i0, i1, j0, j1), n)
+        } else {
+            match board_window(&grid, (i0, i1, j0, j1), cols as i32, rows as i32) {
+                Some((sub, r)) => (sub, r, cols * rows),
+                None => (grid, (i0, i1, j0, j1), 0),
+            }
+        };
         if best.as_ref().is_none_or(|b| size > b.2) {
-            best = Some((grid, (i0, i1, j0, j1), size));
+            best = Some((grid, range, size));
         }
     }
     best.filter(|b| b.2 > 0).map(|(g, r, _)| (g, r))
@@ -432,7 +468,7 @@ pub fn detect_chessboard(
     let plane = Plane::from_gray(image);
     let pts = candidates(&plane, opts);
     let ncand = pts.len();
-    let Some((grid, (i0, i1, j0, j1))) = best_grid(&pts) else {
+    let Some((grid, (i0, i1, j0, j1))) = best_grid(&pts, board.cols, board.rows) else {
         return Err(DetectError::NoBoard { candidates: ncand });
     };
     let (gi, gj) = ((i1 - i0 + 1) as usize, (j1 - j0 + 1) as usize);

@@ -225,6 +225,15 @@ pub enum CalibrationFileError {
         /// What is wrong.
         message: String,
     },
+    /// An OpenCV FileStorage file that is not a usable camera calibration.
+    #[error("{}: not a usable OpenCV camera calibration", path.display())]
+    FileStorage {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: Box<super::opencv_xml::OpenCvXmlError>,
+    },
     /// Serialising failed (a value TOML cannot hold).
     #[error("{path}: cannot encode calibration: {message}")]
     Encode {
@@ -374,9 +383,17 @@ impl CalibrationFile {
 /// Load the calibration file at `path` and apply it to `rig`: the camera's intrinsics from
 /// `[camera]` (the image size must match), its rig-frame pose from `[turntable]`, light positions
 /// from `[[lights]]` (by index). Sections that are absent leave the rig's values alone.
+///
+/// An OpenCV FileStorage file (YAML or XML, see [`super::opencv_yaml::parse_calibration`]) is
+/// taken as well: its camera matrix and distortion set the intrinsics (its `image_width`,
+/// `image_height`, when present, must match the camera), its pose (`R`, `T`), when present, the
+/// camera's rig-frame pose.
 pub fn apply_to_rig(path: &Path, rig: &mut crate::config::RigConfig) -> Result<(), CalibrationFileError> {
     let text =
         std::fs::read_to_string(path).map_err(|source| CalibrationFileError::Read { path: path.to_owned(), source })?;
+    if super::opencv_yaml::is_file_storage(&text) {
+        return apply_file_storage(&text, path, rig);
+    }
     let file = CalibrationFile::parse(&text, path)?;
     let invalid = |key: &str, message: String| CalibrationFileError::Invalid {
         path: path.to_owned(),
@@ -413,6 +430,31 @@ pub fn apply_to_rig(path: &Path, rig: &mut crate::config::RigConfig) -> Result<(
                 ))
             }
         }
+    }
+    Ok(())
+}
+
+/// [`apply_to_rig`] for an OpenCV FileStorage file.
+fn apply_file_storage(text: &str, path: &Path, rig: &mut crate::config::RigConfig) -> Result<(), CalibrationFileError> {
+    let c = super::opencv_yaml::parse_calibration(text, path)
+        .map_err(|e| CalibrationFileError::FileStorage { path: path.to_owned(), source: Box::new(e) })?;
+    let size = rig.camera.size();
+    if let Some((w, h)) = c.camera.size.filter(|s| *s != size) {
+        return Err(CalibrationFileError::Invalid {
+            path: path.to_owned(),
+            line: text.lines().position(|l| l.contains("image_width")).map_or(1, |i| i + 1),
+            key: "image_width".into(),
+            message: format!("calibrated for {w}x{h} pixels but the rig's camera is {}x{}", size.0, size.1),
+        });
+    }
+    let cam = rig.camera.calibration_mut();
+    cam.intrinsics = c.camera.intrinsics;
+    if let Some(p) = c.pose {
+        let r = p.rotation;
+        cam.pose = crate::config::PoseConfig::Matrix {
+            rotation: [0, 1, 2].map(|i| [r[(i, 0)], r[(i, 1)], r[(i, 2)]]),
+            translation_m: p.translation.into(),
+        };
     }
     Ok(())
 }

@@ -4,10 +4,10 @@
 //! For each laser-on / laser-off pair of frames of a board: the board is found in the laser-off
 //! frame and posed with the camera's intrinsics ([`super::estimate_pose`]); the stripe is detected
 //! in the difference ([`crate::pipeline::laser::detect_stripe`]); the peaks inside the board's
-//! inner corners are undistorted into rays and intersected with the board's plane. The points of
-//! every pair (board poses at different places, so the points span the laser plane and not only
-//! a line) are fitted with a plane ([`crate::pipeline::laser::fit_plane`]: RANSAC, then least
-//! squares over the inliers).
+//! inner corners are undistorted into rays and intersected with the board's plane. One pose's
+//! points are lines (one per laser) on its board; the laser planes are the planes that two or more
+//! poses' points share ([`crate::pipeline::laser::fit_planes_across`]: RANSAC over triples from two
+//! poses, then least squares over the inliers, one plane after another).
 //!
 //! Frame: the camera frame (OpenCV axes: `+x` right, `+y` down, `+z` forward), metres.
 
@@ -19,7 +19,7 @@ use nalgebra::{Matrix3, Point2, Vector3};
 use super::detect::{detect_chessboard, to_gray, DetectOptions};
 use super::{estimate_pose, BoardSpec, PlanarView};
 use crate::geometry::{CameraModel, Intrinsics, Pose};
-use crate::pipeline::laser::{detect_stripe, fit_plane, Plane, PlaneFit, PlaneFitParams, StripeParams};
+use crate::pipeline::laser::{detect_stripe, fit_planes_across, Plane, PlaneFit, PlaneFitParams, StripeParams};
 
 /// Why a laser step failed; each names the file at fault.
 #[derive(Debug, thiserror::Error)]
@@ -173,8 +173,20 @@ pub fn board_laser_view(
     let mut found = None;
     let mut first_err = None;
     'search: for (path, g) in &board_frame {
-        for (sigma_px, min_contrast) in [(1.5, 20.0), (2.5, 20.0), (2.5, 10.0), (4.0, 10.0), (6.0, 8.0), (8.0, 6.0)] {
-            match detect_chessboard(g, board, &DetectOptions { sigma_px, min_contrast, ..DetectOptions::default() }) {
+        // Larger rings suit the large squares of a board close to the camera (and skip the noise
+        // that stretching a dark frame brings out).
+        for (sigma_px, min_contrast, ring_radius_px) in [
+            (1.5, 20.0, 5.0),
+            (2.5, 20.0, 5.0),
+            (2.5, 10.0, 5.0),
+            (4.0, 10.0, 5.0),
+            (2.5, 10.0, 8.0),
+            (4.0, 10.0, 12.0),
+            (6.0, 8.0, 5.0),
+            (8.0, 6.0, 5.0),
+        ] {
+            let opts = DetectOptions { sigma_px, min_contrast, ring_radius_px, ..DetectOptions::default() };
+            match detect_chessboard(g, board, &opts) {
                 Ok(d) => {
                     found = Some((path.clone(), d));
                     break 'search;
@@ -220,18 +232,30 @@ fn unreachable_detect(background: &Path) -> Result<(PathBuf, super::ChessboardDe
     Err(LaserBoardError::Ply { path: background.to_path_buf(), reason: "no frame to find the board in".into() })
 }
 
-/// Fit the laser plane to the board views' points (camera frame, metres).
-pub fn fit_laser_plane(views: &[BoardLaserView], inlier_m: f64) -> Result<PlaneFit, LaserBoardError> {
-    let pts: Vec<Vector3<f64>> = views.iter().flat_map(|v| v.points.iter().copied()).collect();
+/// The laser planes in the board views' stripe points (camera frame, metres): every plane that two
+/// or more board poses each give `min_per_pose` points within `inlier_m`
+/// ([`crate::pipeline::laser::fit_planes_across`]; one pose's stripes are lines on its board, and a
+/// frame may show several lasers' stripes). Normals point away from the camera (`+z`), as published
+/// calibrations give them, and the planes are ordered by the normal's `x`: a laser left of the
+/// camera (its plane's normal pointing left) first.
+pub fn fit_laser_planes(
+    views: &[BoardLaserView],
+    inlier_m: f64,
+    min_per_pose: usize,
+    max_planes: usize,
+) -> Result<Vec<PlaneFit>, LaserBoardError> {
+    let sets: Vec<Vec<Vector3<f64>>> = views.iter().map(|v| v.points.clone()).collect();
     let path = views.last().map(|v| v.laser.clone()).unwrap_or_default();
-    let fit = fit_plane(&pts, &PlaneFitParams { inlier_m, ..PlaneFitParams::default() })
+    let params = PlaneFitParams { inlier_m, iterations: 3000, ..PlaneFitParams::default() };
+    let mut fits = fit_planes_across(&sets, &params, min_per_pose, max_planes)
         .map_err(|source| LaserBoardError::Laser { path, source })?;
-    // Orient the normal as published calibrations do: towards +z (away from the camera).
-    let mut f = fit;
-    if f.plane.normal[2] < 0.0 {
-        f.plane = Plane { normal: f.plane.normal.map(|x| -x), offset_m: -f.plane.offset_m };
+    for f in &mut fits {
+        if f.plane.normal[2] < 0.0 {
+            f.plane = Plane { normal: f.plane.normal.map(|x| -x), offset_m: -f.plane.offset_m };
+        }
     }
-    Ok(f)
+    fits.sort_by(|a, b| a.plane.normal[0].total_cmp(&b.plane.normal[0]));
+    Ok(fits)
 }
 
 /// The `x y z` of every vertex of a PLY file (binary little-endian or ASCII; the first three

@@ -1,8 +1,8 @@
-//! A reader for the subset of OpenCV's XML `FileStorage` format that projector-camera calibrations
-//! are published in: top-level `<name type_id="opencv-matrix">` elements with `<rows>`, `<cols>`,
+//! A reader for the subset of OpenCV's XML `FileStorage` format that calibrations are published
+//! in (the YAML syntax is [`super::opencv_yaml`]'s; both share [`OpenCvMatrix`] and [`lens`]): top-level `<name type_id="opencv-matrix">` elements with `<rows>`, `<cols>`,
 //! `<dt>d</dt>` and whitespace-separated `<data>`, and top-level scalars `<name>value</name>`.
 //!
-//! [`ReferenceCalibration::parse`] reads the projector-camera result of the `procam-calibration`
+//! [`ReferenceCalibration::parse`] reads (from XML or YAML) the projector-camera result of the `procam-calibration`
 //! tool: `cam_int`, `cam_dist`, `proj_int`, `proj_dist` (3x3 matrices and `k1 k2 p1 p2 k3`),
 //! `roration` (sic; `rotation` is accepted too) and `translation` (projector <- camera).
 //! OpenCV puts pixel centres at integer coordinates; this project puts them at `+0.5` (see
@@ -114,6 +114,51 @@ pub fn read_matrix(text: &str, path: &Path, name: &str) -> Result<OpenCvMatrix, 
     Ok(OpenCvMatrix { rows, cols, data, line })
 }
 
+/// The lens of a FileStorage camera matrix `k` (3x3, named `k_name` in errors) and distortion
+/// `d` (`k1 k2 p1 p2 k3` then OpenCV's rational, thin-prism and tilt terms, which must be 0; 4, 5,
+/// 8, 12 or 14 terms, or none), with the principal point shifted to this project's pixel centres.
+pub fn lens(
+    path: &Path,
+    k_name: &str,
+    k: &OpenCvMatrix,
+    d: Option<&OpenCvMatrix>,
+) -> Result<Intrinsics, OpenCvXmlError> {
+    let bad = |line: usize, reason: String| OpenCvXmlError::Malformed {
+        path: path.to_path_buf(),
+        line,
+        field: k_name.into(),
+        reason,
+    };
+    if (k.rows, k.cols) != (3, 3) {
+        return Err(bad(k.line, format!("a camera matrix is 3x3, got {}x{}", k.rows, k.cols)));
+    }
+    let terms = d.map_or(&[][..], |d| &d.data[..]);
+    let d_line = d.map_or(k.line, |d| d.line);
+    if !matches!(terms.len(), 0 | 4 | 5 | 8 | 12 | 14) {
+        return Err(bad(d_line, format!("{} distortion terms (expected 4, 5, 8, 12 or 14)", terms.len())));
+    }
+    if terms.iter().skip(5).any(|v| *v != 0.0) {
+        return Err(bad(
+            d_line,
+            "rational, thin-prism or tilt distortion terms (beyond k1 k2 p1 p2 k3) are not supported".into(),
+        ));
+    }
+    let term = |i: usize| terms.get(i).copied().unwrap_or(0.0);
+    let lens = Intrinsics {
+        fx: k.data[0],
+        fy: k.data[4],
+        cx: k.data[2] + 0.5,
+        cy: k.data[5] + 0.5,
+        skew: k.data[1],
+        ..Intrinsics::default()
+    }
+    .with_distortion([term(0), term(1), term(2), term(3), term(4)]);
+    if !lens.is_valid() {
+        return Err(bad(k.line, "focal lengths must be positive".into()));
+    }
+    Ok(lens)
+}
+
 /// A published projector-camera calibration.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ReferenceCalibration {
@@ -139,17 +184,9 @@ impl ReferenceCalibration {
 
     /// Parse the text of a `calibration_result.xml` file (`path` names it in errors).
     pub fn parse(text: &str, path: &Path) -> Result<ReferenceCalibration, OpenCvXmlError> {
+        let read = |name: &str| super::opencv_yaml::read_any_matrix(text, path, name);
         let lens = |k_name: &str, d_name: &str| -> Result<Intrinsics, OpenCvXmlError> {
-            let k = read_matrix(text, path, k_name)?;
-            if (k.rows, k.cols) != (3, 3) {
-                return Err(OpenCvXmlError::Malformed {
-                    path: path.to_path_buf(),
-                    line: k.line,
-                    field: k_name.into(),
-                    reason: format!("a camera matrix is 3x3, got {}x{}", k.rows, k.cols),
-                });
-            }
-            let d = read_matrix(text, path, d_name)?;
+            let d = read(d_name)?;
             if !matches!(d.data.len(), 4 | 5) {
                 return Err(OpenCvXmlError::Malformed {
                     path: path.to_path_buf(),
@@ -158,36 +195,15 @@ impl ReferenceCalibration {
                     reason: format!("expected 4 or 5 distortion terms (k1 k2 p1 p2 [k3]), got {}", d.data.len()),
                 });
             }
-            let k3 = d.data.get(4).copied().unwrap_or(0.0);
-            let lens = Intrinsics {
-                fx: k.data[0],
-                fy: k.data[4],
-                cx: k.data[2] + 0.5,
-                cy: k.data[5] + 0.5,
-                skew: k.data[1],
-                k1: d.data[0],
-                k2: d.data[1],
-                p1: d.data[2],
-                p2: d.data[3],
-                k3,
-            };
-            if !lens.is_valid() {
-                return Err(OpenCvXmlError::Malformed {
-                    path: path.to_path_buf(),
-                    line: k.line,
-                    field: k_name.into(),
-                    reason: "focal lengths must be positive".into(),
-                });
-            }
-            Ok(lens)
+            lens(path, k_name, &read(k_name)?, Some(&d))
         };
         let camera = lens("cam_int", "cam_dist")?;
         let projector = lens("proj_int", "proj_dist")?;
-        let r = match read_matrix(text, path, "roration") {
-            Err(OpenCvXmlError::Missing { .. }) => read_matrix(text, path, "rotation")?,
+        let r = match read("roration") {
+            Err(OpenCvXmlError::Missing { .. }) => read("rotation")?,
             other => other?,
         };
-        let t = read_matrix(text, path, "translation")?;
+        let t = read("translation")?;
         if (r.rows, r.cols) != (3, 3) {
             return Err(OpenCvXmlError::Malformed {
                 path: path.to_path_buf(),
@@ -214,7 +230,7 @@ impl ReferenceCalibration {
                 reason: format!("not a rotation (|RᵀR - I| = {orth:.2e})"),
             });
         }
-        let rms_px = element(text, "rms").and_then(|(b, _)| b.trim().parse::<f64>().ok());
+        let rms_px = super::opencv_yaml::scalar(text, "rms");
         Ok(ReferenceCalibration {
             camera,
             projector,

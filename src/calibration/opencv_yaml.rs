@@ -13,8 +13,10 @@
 
 use std::path::Path;
 
-use super::opencv_xml::{read_matrix, OpenCvMatrix, OpenCvXmlError};
-use crate::geometry::Intrinsics;
+use super::opencv_xml::{lens, read_matrix, OpenCvMatrix, OpenCvXmlError};
+use nalgebra::{Matrix3, Rotation3, Vector3};
+
+use crate::geometry::{Intrinsics, Pose};
 
 const K_NAMES: [&str; 5] = ["camera_matrix", "cameraMatrix", "K", "cam_int", "M1"];
 const D_NAMES: [&str; 6] = ["distortion_coefficients", "distCoeffs", "dist_coeffs", "D", "cam_dist", "D1"];
@@ -73,18 +75,35 @@ fn is_yaml(text: &str) -> bool {
     t.starts_with("%YAML") || (!t.starts_with('<') && t.contains("opencv-matrix"))
 }
 
-fn find_any(text: &str, path: &Path, names: &[&str]) -> Result<OpenCvMatrix, OpenCvXmlError> {
+/// Whether `text` is an OpenCV FileStorage file (YAML `%YAML:1.0` or XML `<opencv_storage>`).
+pub fn is_file_storage(text: &str) -> bool {
+    let t = text.trim_start();
+    t.starts_with("%YAML") || ((t.starts_with("<?xml") || t.starts_with('<')) && t.contains("<opencv_storage"))
+}
+
+/// The matrix `name` of a FileStorage file, YAML or XML (told apart by content).
+pub fn read_any_matrix(text: &str, path: &Path, name: &str) -> Result<OpenCvMatrix, OpenCvXmlError> {
+    if is_yaml(text) {
+        read_yaml_matrix(text, path, name)
+    } else {
+        read_matrix(text, path, name)
+    }
+}
+
+/// The first of `names` present (its name and matrix).
+fn find_any<'n>(text: &str, path: &Path, names: &[&'n str]) -> Result<(&'n str, OpenCvMatrix), OpenCvXmlError> {
     for n in names {
-        let r = if is_yaml(text) { read_yaml_matrix(text, path, n) } else { read_matrix(text, path, n) };
-        match r {
+        match read_any_matrix(text, path, n) {
             Err(OpenCvXmlError::Missing { .. }) => continue,
-            other => return other,
+            other => return other.map(|m| (*n, m)),
         }
     }
     Err(OpenCvXmlError::Missing { path: path.to_path_buf(), field: names.join(" | ") })
 }
 
-fn scalar(text: &str, name: &str) -> Option<u32> {
+/// The top-level scalar `name` of a FileStorage file, YAML (`name: value`) or XML
+/// (`<name>value</name>`), when present and a number.
+pub fn scalar(text: &str, name: &str) -> Option<f64> {
     if is_yaml(text) {
         text.lines().find_map(|l| l.strip_prefix(&format!("{name}:")).and_then(|v| v.trim().parse().ok()))
     } else {
@@ -97,46 +116,86 @@ fn scalar(text: &str, name: &str) -> Option<u32> {
 
 /// Parse a FileStorage file's camera (`path` names it in errors).
 pub fn parse_camera(text: &str, path: &Path) -> Result<OpenCvCamera, OpenCvXmlError> {
-    let k = find_any(text, path, &K_NAMES)?;
+    let (k_name, k) = find_any(text, path, &K_NAMES)?;
+    let d = match find_any(text, path, &D_NAMES) {
+        Ok((_, d)) => Some(d),
+        Err(OpenCvXmlError::Missing { .. }) => None,
+        Err(e) => return Err(e),
+    };
+    let intrinsics = lens(path, k_name, &k, d.as_ref())?;
+    let dim = |n: &str| scalar(text, n).filter(|v| *v >= 1.0 && v.fract() == 0.0 && *v <= f64::from(u32::MAX));
+    let size = dim("image_width").zip(dim("image_height")).map(|(w, h)| (w as u32, h as u32));
+    Ok(OpenCvCamera { intrinsics, size })
+}
+
+/// A FileStorage camera and, when the file has one, its pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OpenCvCalibration {
+    /// The camera.
+    pub camera: OpenCvCamera,
+    /// Rig (turntable) frame -> camera frame, `x_cam = R x_rig + t`, metres.
+    pub pose: Option<Pose>,
+}
+
+const R_NAMES: [&str; 3] = ["R", "rotation", "rvec"];
+const T_NAMES: [&str; 3] = ["T", "translation", "tvec"];
+
+/// Parse a FileStorage file's camera and pose (`path` names it in errors). The pose, rig
+/// (turntable) frame -> camera frame in metres, is read from `R` | `rotation` | `rvec` (a 3x3
+/// rotation or a Rodrigues vector of 3) with `T` | `translation` | `tvec` (3 values), else from
+/// `extrinsic_parameters` when it holds one view (1x6: Rodrigues vector, translation), as OpenCV's
+/// calibration sample writes it for a single view.
+pub fn parse_calibration(text: &str, path: &Path) -> Result<OpenCvCalibration, OpenCvXmlError> {
+    let camera = parse_camera(text, path)?;
     let bad = |m: &OpenCvMatrix, field: &str, reason: String| OpenCvXmlError::Malformed {
         path: path.to_path_buf(),
         line: m.line,
         field: field.into(),
         reason,
     };
-    if (k.rows, k.cols) != (3, 3) {
-        return Err(bad(&k, "camera_matrix", format!("a camera matrix is 3x3, got {}x{}", k.rows, k.cols)));
-    }
-    let d = match find_any(text, path, &D_NAMES) {
-        Ok(d) => d.data.clone(),
-        Err(OpenCvXmlError::Missing { .. }) => Vec::new(),
-        Err(e) => return Err(e),
+    let optional = |names: &[&'static str]| match find_any(text, path, names) {
+        Ok(x) => Ok(Some(x)),
+        Err(OpenCvXmlError::Missing { .. }) => Ok(None),
+        Err(e) => Err(e),
     };
-    if !matches!(d.len(), 0 | 4 | 5 | 8 | 12 | 14) {
-        return Err(bad(&k, "distortion_coefficients", format!("{} terms (expected 4, 5, 8, 12 or 14)", d.len())));
-    }
-    if d.iter().skip(5).any(|v| *v != 0.0) {
-        return Err(bad(
-            &k,
-            "distortion_coefficients",
-            "rational, thin-prism or tilt terms (beyond k1 k2 p1 p2 k3) are not supported".into(),
-        ));
-    }
-    let term = |i: usize| d.get(i).copied().unwrap_or(0.0);
-    let intrinsics = Intrinsics {
-        fx: k.data[0],
-        fy: k.data[4],
-        cx: k.data[2] + 0.5,
-        cy: k.data[5] + 0.5,
-        skew: k.data[1],
-        ..Intrinsics::default()
-    }
-    .with_distortion([term(0), term(1), term(2), term(3), term(4)]);
-    if !intrinsics.is_valid() {
-        return Err(bad(&k, "camera_matrix", "focal lengths must be positive".into()));
-    }
-    let size = scalar(text, "image_width").zip(scalar(text, "image_height"));
-    Ok(OpenCvCamera { intrinsics, size })
+    let rotation = |name: &str, m: &OpenCvMatrix, v: &[f64]| -> Result<Matrix3<f64>, OpenCvXmlError> {
+        let r = match v.len() {
+            9 => Matrix3::from_row_slice(v),
+            3 => *Rotation3::new(Vector3::new(v[0], v[1], v[2])).matrix(),
+            n => return Err(bad(m, name, format!("a rotation is 3x3 or a Rodrigues vector of 3, got {n} values"))),
+        };
+        let orth = (r.transpose() * r - Matrix3::identity()).norm();
+        if orth > 1e-3 || r.determinant() < 0.0 {
+            return Err(bad(m, name, format!("not a rotation (|RᵀR - I| = {orth:.2e})")));
+        }
+        Ok(r)
+    };
+    let pose = match (optional(&R_NAMES)?, optional(&T_NAMES)?) {
+        (Some((rn, r)), Some((tn, t))) => {
+            if t.data.len() != 3 {
+                return Err(bad(&t, tn, format!("a translation has 3 values, got {}", t.data.len())));
+            }
+            Some(Pose { rotation: rotation(rn, &r, &r.data)?, translation: Vector3::from_column_slice(&t.data) })
+        }
+        (Some((n, m)), None) | (None, Some((n, m))) => {
+            return Err(bad(&m, n, "a pose needs both a rotation (R) and a translation (T)".into()))
+        }
+        (None, None) => match optional(&["extrinsic_parameters"])? {
+            Some((n, e)) if e.data.len() == 6 => Some(Pose {
+                rotation: rotation(n, &e, &e.data[..3])?,
+                translation: Vector3::from_column_slice(&e.data[3..]),
+            }),
+            _ => None,
+        },
+    };
+    Ok(OpenCvCalibration { camera, pose })
+}
+
+/// Read a FileStorage file's camera and pose (see [`parse_calibration`]).
+pub fn load_calibration(path: &Path) -> Result<OpenCvCalibration, OpenCvXmlError> {
+    let text =
+        std::fs::read_to_string(path).map_err(|source| OpenCvXmlError::Io { path: path.to_path_buf(), source })?;
+    parse_calibration(&text, path)
 }
 
 /// Read a FileStorage file's camera (YAML or XML).
@@ -167,6 +226,37 @@ pub fn camera_yaml(i: &Intrinsics, width: u32, height: u32, rms_px: f64) -> Stri
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn poses_read_from_r_t_rodrigues_or_one_view_extrinsics() {
+        let i = Intrinsics::new(800.0, 800.0, 320.5, 240.5);
+        let cam = camera_yaml(&i, 640, 480, 0.1);
+        let m = |name: &str, r: usize, c: usize, v: &str| {
+            format!("{name}: !!opencv-matrix\n   rows: {r}\n   cols: {c}\n   dt: d\n   data: [ {v} ]\n")
+        };
+        let p = Path::new("c.yaml");
+        assert_eq!(parse_calibration(&cam, p).expect("no pose").pose, None);
+        let rt = format!("{cam}{}{}", m("R", 3, 3, "1, 0, 0, 0, 0, -1, 0, 1, 0"), m("T", 3, 1, "0.1, 0.2, 0.5"));
+        let pose = parse_calibration(&rt, p).expect("R T").pose.expect("pose");
+        assert_eq!(pose.rotation[(1, 2)], -1.0);
+        assert_eq!(pose.translation, Vector3::new(0.1, 0.2, 0.5));
+        // The same rotation as a Rodrigues vector (90 degrees about x), and as one view's extrinsics.
+        let h = std::f64::consts::FRAC_PI_2;
+        let rv = format!("{cam}{}{}", m("rvec", 3, 1, &format!("{h}, 0, 0")), m("tvec", 3, 1, "0.1, 0.2, 0.5"));
+        let a = parse_calibration(&rv, p).expect("rvec").pose.expect("pose");
+        assert!((a.rotation - pose.rotation).norm() < 1e-12, "{a:?}");
+        let ex = format!("{cam}{}", m("extrinsic_parameters", 1, 6, &format!("{h}, 0, 0, 0.1, 0.2, 0.5")));
+        let b = parse_calibration(&ex, p).expect("extrinsics").pose.expect("pose");
+        assert!((b.rotation - pose.rotation).norm() < 1e-12 && b.translation == pose.translation);
+        let half = format!("{cam}{}", m("R", 3, 3, "1, 0, 0, 0, 1, 0, 0, 0, 1"));
+        assert!(parse_calibration(&half, p).expect_err("R alone").to_string().contains("translation"));
+        let skew = format!("{cam}{}{}", m("R", 3, 3, "2, 0, 0, 0, 1, 0, 0, 0, 1"), m("T", 3, 1, "0, 0, 1"));
+        assert!(parse_calibration(&skew, p).expect_err("not a rotation").to_string().contains("not a rotation"));
+        assert!(
+            is_file_storage(&cam) && is_file_storage("<?xml version=\"1.0\"?>\n<opencv_storage>\n</opencv_storage>")
+        );
+        assert!(!is_file_storage("format_version = 1\n"));
+    }
 
     #[test]
     fn yaml_round_trips_and_xml_reads() {

@@ -748,8 +748,8 @@ impl RigConfig {
             );
         }
         let p = &r.photo;
-        if !(p.threshold.is_finite() && p.threshold > 0.0 && p.threshold <= 255.0) {
-            bad("reconstruction.photo.threshold", format!("must be in (0, 255] levels, got {}", p.threshold));
+        if let Some(t) = p.threshold.filter(|t| !(t.is_finite() && *t > 0.0 && *t <= 255.0)) {
+            bad("reconstruction.photo.threshold", format!("must be in (0, 255] levels, got {t}"));
         }
         if p.min_ncc.is_some_and(|n| !(-1.0..=1.0).contains(&n)) {
             bad("reconstruction.photo.min_ncc", "must be in [-1, 1]".into());

@@ -925,9 +925,11 @@ impl Method {
 #[serde(deny_unknown_fields)]
 pub struct PhotoConfig {
     /// Largest colour standard deviation between the views of a kept voxel (of their mean colours
-    /// over its footprint), 8-bit levels (0..255).
-    #[serde(default = "default_photo_threshold")]
-    pub threshold: f64,
+    /// over its footprint), 8-bit levels (0..255). Absent (the default): derived from the data's
+    /// measured noise (`pipeline::PhotoNoise::threshold`: the spread of the visual hull's surface
+    /// colours between views and the image noise); a number fixes it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub threshold: Option<f64>,
     /// Smallest mean normalised cross-correlation of a textured kept voxel (-1..1); absent = no NCC test.
     #[serde(default)]
     pub min_ncc: Option<f64>,
@@ -947,9 +949,6 @@ pub struct PhotoConfig {
     pub arc_deg: f64,
 }
 
-fn default_photo_threshold() -> f64 {
-    22.0
-}
 fn default_photo_min_views() -> usize {
     2
 }
@@ -966,7 +965,7 @@ fn default_photo_arc() -> f64 {
 impl Default for PhotoConfig {
     fn default() -> Self {
         PhotoConfig {
-            threshold: default_photo_threshold(),
+            threshold: None,
             min_ncc: None,
             min_views: default_photo_min_views(),
             min_cos: default_photo_min_cos(),

@@ -63,6 +63,18 @@ pub enum LaserError {
         /// The normal given.
         normal: [f64; 3],
     },
+    /// No plane holds the points of two or more target poses.
+    #[error("no plane holds {needed} or more stripe points of each of two target poses ({poses} poses, {points} points, at most {largest} in one pose)")]
+    PlaneAcrossPoses {
+        /// Poses given.
+        poses: usize,
+        /// Points over all poses.
+        points: usize,
+        /// Points of the largest pose.
+        largest: usize,
+        /// Inliers each of two poses must give.
+        needed: usize,
+    },
     /// Too few points, or points that do not span a plane, for a plane fit.
     #[error("plane fit: {points} points, {inliers} on the best plane (at least {needed} needed, not all on a line)")]
     PlaneFit {
@@ -366,6 +378,93 @@ pub fn fit_plane(points: &[Vector3<f64>], params: &PlaneFitParams) -> Result<Pla
     Ok(PlaneFit { plane, inliers: inl.len(), points: n, rms_m })
 }
 
+/// The laser planes in stripe points of several target poses (`sets[k]`: the points of pose `k`, a
+/// board's stripe points say): one pose's points lie on the target's surface (a board: one plane
+/// holding every laser's line), so only a plane that two or more poses each give at least
+/// `min_per_set` inliers is a laser plane. Planes are found one after another (RANSAC over triples
+/// drawn from two or more poses, the best candidate refitted by least squares over its inliers,
+/// twice; its inliers are then removed), at most `max_planes`, until no candidate has the support
+/// of two poses.
+pub fn fit_planes_across(
+    sets: &[Vec<Vector3<f64>>],
+    params: &PlaneFitParams,
+    min_per_set: usize,
+    max_planes: usize,
+) -> Result<Vec<PlaneFit>, LaserError> {
+    if !(params.inlier_m.is_finite() && params.inlier_m > 0.0) {
+        return Err(LaserError::Parameter { name: "inlier_m", value: params.inlier_m, expected: "positive metres" });
+    }
+    let min_per_set = min_per_set.max(3);
+    let mut left: Vec<(Vector3<f64>, usize)> =
+        sets.iter().enumerate().flat_map(|(k, s)| s.iter().map(move |p| (*p, k))).collect();
+    let total = left.len();
+    let mut state = params.seed ^ 0x9e37_79b9_7f4a_7c15;
+    let mut next = move |m: usize| {
+        state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        ((z ^ (z >> 31)) % m as u64) as usize
+    };
+    // Inliers per set, and whether two sets give `min_per_set` each.
+    let support = |plane: &Plane, pts: &[(Vector3<f64>, usize)]| {
+        let mut per = vec![0usize; sets.len()];
+        for (p, k) in pts {
+            if plane.distance(p).abs() <= params.inlier_m {
+                per[*k] += 1;
+            }
+        }
+        let sum: usize = per.iter().sum();
+        (sum, per.iter().filter(|&&c| c >= min_per_set).count() >= 2)
+    };
+    let mut fits = Vec::new();
+    while fits.len() < max_planes && left.len() >= 3 {
+        let mut best: Option<(usize, Plane)> = None;
+        for _ in 0..params.iterations.max(1) {
+            let a = left[next(left.len())];
+            let b = left[next(left.len())];
+            let c = left[next(left.len())];
+            if a.1 == b.1 && b.1 == c.1 {
+                continue;
+            }
+            let Ok(plane) = Plane::through(a.0.into(), (b.0 - a.0).cross(&(c.0 - a.0)).into()) else { continue };
+            let (count, two) = support(&plane, &left);
+            if two && best.is_none_or(|(k, _)| count > k) {
+                best = Some((count, plane));
+            }
+        }
+        let Some((_, mut plane)) = best else { break };
+        let inliers_of = |plane: &Plane, pts: &[(Vector3<f64>, usize)]| -> Vec<Vector3<f64>> {
+            pts.iter().filter(|(p, _)| plane.distance(p).abs() <= params.inlier_m).map(|(p, _)| *p).collect()
+        };
+        for _ in 0..2 {
+            let inl = inliers_of(&plane, &left);
+            match least_squares_plane(&inl) {
+                Some(p) => plane = p,
+                None => break,
+            }
+        }
+        let (_, two) = support(&plane, &left);
+        let inl = inliers_of(&plane, &left);
+        if !two || inl.len() < 3 {
+            break;
+        }
+        let rms_m = (inl.iter().map(|p| plane.distance(p).powi(2)).sum::<f64>() / inl.len() as f64).sqrt();
+        fits.push(PlaneFit { plane, inliers: inl.len(), points: total, rms_m });
+        left.retain(|(p, _)| plane.distance(p).abs() > params.inlier_m);
+    }
+    if fits.is_empty() {
+        let most = sets.iter().map(Vec::len).max().unwrap_or(0);
+        return Err(LaserError::PlaneAcrossPoses {
+            poses: sets.len(),
+            points: total,
+            largest: most,
+            needed: min_per_set,
+        });
+    }
+    Ok(fits)
+}
+
 /// Where the ray `origin + t·dir` (t > 0) first meets the box `target` (same frame), if it does.
 pub fn ray_box(target: &Aabb, origin: &Vector3<f64>, dir: &Vector3<f64>) -> Option<Vector3<f64>> {
     let (mut t0, mut t1) = (0.0f64, f64::INFINITY);
@@ -451,6 +550,50 @@ mod tests {
                 v as f32
             })
             .collect()
+    }
+
+    /// Two lasers' stripes on a board at two poses: four lines, each pose's two on its board
+    /// plane. The fit finds the two laser planes, never a board plane.
+    #[test]
+    fn laser_planes_come_from_two_poses_not_from_one_board() {
+        let lasers = [
+            Plane::through([0.0, 0.0, 0.3], [-0.87, 0.0, 0.49]).expect("plane"),
+            Plane::through([0.0, 0.0, 0.3], [0.85, 0.0, 0.53]).expect("plane"),
+        ];
+        // Vertical boards (normal in the x-z plane) at 260 mm and 280 mm, turned by 0 and 25 degrees.
+        let boards = [(0.26, 0.0f64), (0.28, 25.0f64)];
+        let mut sets = Vec::new();
+        for (z, turn) in boards {
+            let n = Vector3::new(turn.to_radians().sin(), 0.0, -turn.to_radians().cos());
+            let board = Plane::through([0.0, 0.0, z], n.into()).expect("board");
+            let mut pts = Vec::new();
+            for l in &lasers {
+                // The line board ∩ laser, sampled along y with 0.05 mm of noise.
+                let d = Vector3::from(board.normal).cross(&Vector3::from(l.normal)).normalize();
+                let (a, b) = (Vector3::from(board.normal), Vector3::from(l.normal));
+                // A point on both planes with y = 0: solve the 2x2 system in x, z.
+                let det = a[0] * b[2] - a[2] * b[0];
+                let x = (board.offset_m * b[2] - a[2] * l.offset_m) / det;
+                let zz = (a[0] * l.offset_m - board.offset_m * b[0]) / det;
+                let p0 = Vector3::new(x, 0.0, zz);
+                for k in 0..200 {
+                    let t = -0.03 + 0.08 * k as f64 / 200.0;
+                    let noise = 5e-5 * ((k * 7919 % 13) as f64 / 6.0 - 1.0);
+                    pts.push(p0 + d * (t / d[1]) + Vector3::from(l.normal) * noise);
+                }
+            }
+            sets.push(pts);
+        }
+        let fits = fit_planes_across(&sets, &PlaneFitParams { inlier_m: 5e-4, iterations: 2000, seed: 3 }, 20, 4)
+            .expect("fits");
+        assert_eq!(fits.len(), 2, "{fits:?}");
+        for l in &lasers {
+            let f = fits.iter().min_by(|a, b| a.plane.angle_deg(l).total_cmp(&b.plane.angle_deg(l))).expect("fit");
+            assert!(f.plane.angle_deg(l) < 0.1 && f.inliers == 400, "{f:?} for {l:?}");
+        }
+        // One pose alone is only lines on one board: refused.
+        let e = fit_planes_across(&sets[..1], &PlaneFitParams::default(), 20, 4).expect_err("one pose");
+        assert!(e.to_string().contains("two target poses"), "{e}");
     }
 
     #[test]

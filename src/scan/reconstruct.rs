@@ -289,14 +289,16 @@ pub fn dataset_options(
 }
 
 /// Parse `threshold=T,min_cos=C,min_views=N,ncc=X,arc=DEG,iterations=I` (any subset, any order) over
-/// the defaults of `[reconstruction.photo]`.
+/// the defaults of `[reconstruction.photo]`; `threshold=measured` (the default) derives the threshold
+/// from the data's measured noise.
 pub fn parse_photo(text: &str) -> Result<crate::config::PhotoConfig, &'static str> {
     let mut c = crate::config::PhotoConfig::default();
     for part in text.split(',').filter(|p| !p.trim().is_empty()) {
         let (key, value) = part.split_once('=').ok_or("expected key=value pairs")?;
         let num = || value.trim().parse::<f64>().map_err(|_| "a value is not a number");
         match key.trim() {
-            "threshold" => c.threshold = num()?,
+            "threshold" if value.trim() == "measured" => c.threshold = None,
+            "threshold" => c.threshold = Some(num()?),
             "min_cos" => c.min_cos = num()?,
             "ncc" => c.min_ncc = Some(num()?),
             "arc" => c.arc_deg = num()?,
@@ -305,7 +307,7 @@ pub fn parse_photo(text: &str) -> Result<crate::config::PhotoConfig, &'static st
             _ => return Err("unknown key (known: threshold, min_cos, min_views, ncc, arc, iterations)"),
         }
     }
-    if !(c.threshold > 0.0 && c.threshold <= 255.0) {
+    if c.threshold.is_some_and(|t| !(t > 0.0 && t <= 255.0)) {
         return Err("threshold must be in (0, 255]");
     }
     if !(-1.0..=1.0).contains(&c.min_cos) || c.min_ncc.is_some_and(|n| !(-1.0..=1.0).contains(&n)) {

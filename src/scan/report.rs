@@ -109,8 +109,11 @@ pub struct VisualHull {
 /// Photo-consistency details of a `voxel-coloring` or `space-carving-photo` run.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct PhotoReport {
-    /// Colour standard deviation threshold, 8-bit levels.
+    /// Colour standard deviation threshold used, 8-bit levels.
     pub threshold: f64,
+    /// The data's measured noise the threshold was derived from (absent when it was fixed).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub measured_noise: Option<crate::pipeline::PhotoNoise>,
     /// NCC threshold, if the NCC test was on.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub min_ncc: Option<f64>,

@@ -15,15 +15,16 @@ use crate::config::{Method, PhotoConfig};
 use crate::geometry::VoxelGrid;
 use crate::pipeline::photo_consistency::UNSEEN_COLOUR;
 use crate::pipeline::{
-    carve_photo, color_voxels, colour_surface, reprojection_error, ColouredSurface, Occupancy, PhotoError, PhotoParams,
-    PhotoView, TriangleMesh,
+    carve_photo, color_voxels, colour_surface, measure_noise, reprojection_error, ColouredSurface, Occupancy,
+    PhotoError, PhotoParams, PhotoView, TriangleMesh,
 };
 use crate::scan::report::{PhotoReport, VisualHull};
 
-/// The pipeline parameters of a `[reconstruction.photo]` section.
+/// The pipeline parameters of a `[reconstruction.photo]` section; without a fixed threshold, the
+/// pipeline's default stands in until [`reconstruct_photo`] measures the data's noise.
 pub fn photo_params(c: &PhotoConfig) -> PhotoParams {
     PhotoParams {
-        threshold: c.threshold as f32,
+        threshold: c.threshold.map_or(PhotoParams::default().threshold, |t| t as f32),
         min_ncc: c.min_ncc.map(|x| x as f32),
         min_views: c.min_views,
         min_cos: c.min_cos as f32,
@@ -164,10 +165,20 @@ pub fn reconstruct_photo(
     views: &[PhotoView<'_>],
     truth: Option<&Truth<'_>>,
 ) -> Result<(Occupancy, PhotoOutputs), PhotoError> {
-    let params = photo_params(config);
     let grid = *hull.grid();
     let used: Vec<PhotoView<'_>> =
         if method == Method::VoxelColoring { ordinal_subset(&grid, views, config.arc_deg) } else { views.to_vec() };
+    // The threshold: fixed by the configuration, else derived from the measured noise of these
+    // views over the hull's surface.
+    let (params, noise) = match config.threshold {
+        Some(_) => (photo_params(config), None),
+        None => {
+            let p = photo_params(config);
+            let noise = measure_noise(hull, &used, &p)?;
+            tracing::info!(threshold = noise.threshold(), image_sigma = noise.image_sigma, "photo threshold measured");
+            (p.with_measured_noise(&noise), Some(noise))
+        }
+    };
     let model = if method == Method::VoxelColoring {
         color_voxels(hull, &used, &params)?
     } else {
@@ -192,7 +203,8 @@ pub fn reconstruct_photo(
         reprojection_error: Some(reprojection_error(&grid, &hull_surface, &used)),
     };
     let report = PhotoReport {
-        threshold: config.threshold,
+        threshold: f64::from(params.threshold),
+        measured_noise: noise,
         min_ncc: config.min_ncc,
         views: used.len(),
         iterations: model.stats.iterations,
