@@ -35,10 +35,13 @@ struct Args {
 }
 
 fn main() -> ExitCode {
+    // Before any thread starts: a few malloc arenas, not eight per core (see the module's docs).
+    let arenas = scanrig::service::allocator::cap_arenas();
     let args = Args::parse();
     let filter = tracing_subscriber::EnvFilter::try_from_env("SCANRIG_LOG")
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
     tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
+    tracing::info!(?arenas, "malloc arenas");
     match run(args) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

@@ -6,6 +6,7 @@
 //! (resumable), the hardware is parked (lights and lasers off, projector blank, turntable parked)
 //! and the process exits within [`Options::shutdown_deadline`].
 
+pub mod allocator;
 pub mod api;
 pub mod archive;
 pub mod camera;
