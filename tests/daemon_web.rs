@@ -424,6 +424,20 @@ fn page_shots(b: &mut Browser, name: &str) {
 /// Whether the page shows the paused scan and the newest live estimate it was told about.
 const SETTLED: &str = "(() => { const l = window.scanrig.live; return l.renders >= 1 && !l.fetching && !l.dirty && l.shown && l.event && l.shown.version === l.event.version && document.getElementById('msg').textContent.startsWith('Paused'); })()";
 
+/// Wait until the page shows the pause and the newest estimate the daemon has for scan `id` (its
+/// `x-model-version`): progress and model events reach the page on one stream but from two
+/// sources, so "paused" can arrive before the last estimate does.
+fn settle(b: &mut Browser, c: &scanrig::service::client::Client, id: &str) {
+    let r = c.raw("GET", &format!("/api/v1/scans/{id}/live.ply"), None).expect("live model");
+    assert_eq!(r.status, 200, "no live model for the paused scan");
+    let version: u64 = r.header("x-model-version").and_then(|v| v.parse().ok()).expect("x-model-version");
+    b.wait_js(
+        &format!("the page to show the pause and estimate version {version}"),
+        Duration::from_secs(20),
+        &format!("{SETTLED} && window.scanrig.live.shown.version === {version}"),
+    );
+}
+
 /// The viewer's model, as the page describes it.
 const VIEWER_INFO: &str = "JSON.stringify(window.scanrig && document.getElementById('view') && \
      (() => { const v = document.getElementById('size').textContent; return { size: v, title: document.getElementById('viewer-title').textContent }; })())";
@@ -540,7 +554,7 @@ fn the_console_drives_the_rig_and_shows_live_and_final_models_in_headless_chromi
     b.wait_request(n, "POST", &format!("/api/v1/scans/{id}/pause"));
     wait_for("the scan to pause", Duration::from_secs(30), || scan_meta(&c, &id)["status"] != "running");
     assert_eq!(scan_meta(&c, &id)["status"], "paused");
-    b.wait_js("the page to show the pause and the newest estimate", Duration::from_secs(20), SETTLED);
+    settle(&mut b, &c, &id);
     let early = b.eval("JSON.stringify(window.scanrig.live.shown)");
     let early_size = b.eval(VIEWER_INFO);
     let (shot_a, _) = b.shot(Some("#view"));
@@ -552,7 +566,7 @@ fn the_console_drives_the_rig_and_shows_live_and_final_models_in_headless_chromi
     wait_for("three more views", Duration::from_secs(30), || step(&c) >= paused_at + 3);
     b.click("#pause");
     wait_for("the scan to pause again", Duration::from_secs(30), || scan_meta(&c, &id)["status"] != "running");
-    b.wait_js("the page to show the pause and the newest estimate", Duration::from_secs(20), SETTLED);
+    settle(&mut b, &c, &id);
     let later = b.eval("JSON.stringify(window.scanrig.live.shown)");
     let later_size = b.eval(VIEWER_INFO);
     let (shot_b, _) = b.shot(Some("#view"));
@@ -861,6 +875,8 @@ fn with_a_token_the_page_asks_for_it_once_and_its_session_carries_events_camera_
         Duration::from_secs(30),
         &format!("document.querySelector('[data-scan=\"{id}\"]') && window.scanrig.progress.status === 'complete'"),
     );
+    // The finished scan's mesh is opened in the viewer, also through the cookie.
+    assert_eq!(b.wait_request(0, "GET", &format!("/api/v1/scans/{id}/model.ply")), 200);
     let events = b.requests().into_iter().find(|r| r.url.ends_with("/api/v1/events")).expect("an event stream");
     assert_eq!(events.status, Some(200), "{events:?}");
 

@@ -222,9 +222,16 @@ $("start-form").addEventListener("submit", (ev) => {
   });
 });
 const current = () => state.progress && state.progress.scan_id;
-$("pause").addEventListener("click", () => act($("pause"), $("msg"), () => post(`/scans/${current()}/pause`), "Pausing at the end of this view…"));
-$("resume").addEventListener("click", () => act($("resume"), $("msg"), () => post(`/scans/${current()}/resume`), "Resuming…"));
-$("cancel").addEventListener("click", () => act($("cancel"), $("msg"), () => post(`/scans/${current()}/cancel`), "Cancelling at the end of this view…"));
+// What to say once the daemon accepted a pause, resume or cancel: the interim words, unless the
+// event stream already told the outcome (a scan can stop before the request's answer arrives).
+const interim = (text, settled) => () =>
+  state.progress && settled(state.progress.status) ? words.progressWords(state.progress) : text;
+$("pause").addEventListener("click", () => act($("pause"), $("msg"), () => post(`/scans/${current()}/pause`),
+  interim("Pausing at the end of this view…", (s) => s !== "running")));
+$("resume").addEventListener("click", () => act($("resume"), $("msg"), () => post(`/scans/${current()}/resume`),
+  interim("Resuming…", (s) => s === "running")));
+$("cancel").addEventListener("click", () => act($("cancel"), $("msg"), () => post(`/scans/${current()}/cancel`),
+  interim("Cancelling at the end of this view…", (s) => s !== "running")));
 
 function renderProgress(p) {
   const previous = state.progress;

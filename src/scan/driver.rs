@@ -152,6 +152,14 @@ pub(crate) fn drive<F: ScanFlow>(mut flow: F, job: Job<'_>, world: Option<SimWor
         if first < total {
             let sequence = flow.sequence(first);
             let (summary, capture_s) = acquire_and_process(rig, sequence, cancel, events, |view, events| {
+                let Some(view) = view else {
+                    // No view for a moment (moving, exposing, paused): publish the estimate a
+                    // rate-limited view skipped, so a paused scan shows its newest one.
+                    if let Some(p) = publisher.as_mut() {
+                        p.flush(&flow, events);
+                    }
+                    return Ok(());
+                };
                 last_view_at = Instant::now();
                 let (files, lights_on) = flow.save(&frames, &view)?;
                 let record = ViewRecord {
@@ -215,7 +223,9 @@ pub(crate) fn drive<F: ScanFlow>(mut flow: F, job: Job<'_>, world: Option<SimWor
 /// Run an acquisition `sequence` on a thread of its own (it owns the rig's devices for the whole
 /// sequence) while `process` handles each view on this thread as it arrives, over a bounded channel
 /// so a slow pipeline slows the rig instead of piling up frames. The sequence's progress is forwarded
-/// to `events`. The first error of `process` stops the pipeline: dropping the receiver makes the
+/// to `events`. `process` gets `Some(view)` for each view and `None` whenever no view came for
+/// 50 ms (the rig is moving, exposing or paused: time for deferred work). The first error of
+/// `process` stops the pipeline: dropping the receiver makes the
 /// sequence stop with `PipelineGone` and park, and that error is returned rather than the
 /// acquisition's. Returns the acquisition summary and the sequence's busy time, seconds.
 fn acquire_and_process<V: Send>(
@@ -223,7 +233,7 @@ fn acquire_and_process<V: Send>(
     sequence: super::flow::Sequence<V>,
     cancel: &CancelToken,
     events: &mut dyn FnMut(ScanEvent),
-    mut process: impl FnMut(V, &mut dyn FnMut(ScanEvent)) -> Result<(), ScanError>,
+    mut process: impl FnMut(Option<V>, &mut dyn FnMut(ScanEvent)) -> Result<(), ScanError>,
 ) -> Result<(AcquisitionSummary, f64), ScanError> {
     let (tx, rx) = mpsc::sync_channel::<V>(4);
     let (progress_tx, progress_rx) = mpsc::channel::<Progress>();
@@ -247,7 +257,7 @@ fn acquire_and_process<V: Send>(
                     for p in progress_rx.try_iter() {
                         events(ScanEvent::Acquisition(p));
                     }
-                    if let Err(e) = process(view, events) {
+                    if let Err(e) = process(Some(view), events) {
                         pipeline_error = Some(e);
                         break;
                     }
@@ -255,6 +265,10 @@ fn acquire_and_process<V: Send>(
                 Err(mpsc::RecvTimeoutError::Timeout) => {
                     for p in progress_rx.try_iter() {
                         events(ScanEvent::Acquisition(p));
+                    }
+                    if let Err(e) = process(None, events) {
+                        pipeline_error = Some(e);
+                        break;
                     }
                 }
                 Err(mpsc::RecvTimeoutError::Disconnected) => break,
@@ -273,15 +287,25 @@ fn acquire_and_process<V: Send>(
 }
 
 /// When a job publishes its live previews: after a view, when [`LiveSpec::min_interval`] has passed
-/// since the last one, and always after the last view.
+/// since the last one, always after the last view, and, for a view skipped by the rate limit,
+/// as soon as the pipeline is idle and the interval has passed ([`Publisher::flush`]).
 struct Publisher {
     spec: LiveSpec,
     last: Option<Instant>,
+    /// The (position, total) of the newest view whose estimate was not published yet.
+    pending: Option<(usize, usize)>,
 }
 
 impl Publisher {
     fn new(spec: LiveSpec) -> Publisher {
-        Publisher { spec, last: None }
+        Publisher { spec, last: None, pending: None }
+    }
+
+    /// Publish the estimate of a view the rate limit skipped, if the interval has passed.
+    fn flush<F: ScanFlow>(&mut self, flow: &F, events: &mut dyn FnMut(ScanEvent)) {
+        if let Some((position, total)) = self.pending {
+            self.offer(flow, position, total, false, events);
+        }
     }
 
     fn offer<F: ScanFlow>(
@@ -294,8 +318,10 @@ impl Publisher {
     ) {
         let due = last_view || self.last.is_none_or(|t| t.elapsed() >= self.spec.min_interval);
         if !due {
+            self.pending = Some((position, total));
             return;
         }
+        self.pending = None;
         if let Some(cloud) = flow.preview(self.spec.max_points) {
             events(ScanEvent::Preview { position, total, cloud: std::sync::Arc::new(cloud) });
             self.last = Some(Instant::now());
