@@ -9,8 +9,8 @@
 //! plateau; and the descriptors counted with no client connected are the same at the end as after
 //! the first scan.
 //!
-//! Ignored by default (it runs for minutes); `.ci/run` runs a one-minute version:
-//! `SCANRIG_SOAK_SECS=60 cargo test --release --test daemon_soak -- --ignored --nocapture`.
+//! Ignored by default (it runs for minutes); `.ci/run` runs a two-minute version:
+//! `SCANRIG_SOAK_SECS=120 cargo test --release --test daemon_soak -- --ignored --nocapture`.
 
 mod daemon_common;
 
@@ -101,7 +101,7 @@ impl Counters {
 }
 
 #[test]
-#[ignore = "runs for minutes; .ci/run runs it with SCANRIG_SOAK_SECS=60"]
+#[ignore = "runs for minutes; .ci/run runs it with SCANRIG_SOAK_SECS=120"]
 fn soak_scans_polling_and_downloads_keep_memory_and_descriptors_flat() {
     let secs: u64 = std::env::var("SCANRIG_SOAK_SECS").ok().and_then(|v| v.parse().ok()).unwrap_or(600);
     let dir = tempfile::tempdir().expect("tempdir");

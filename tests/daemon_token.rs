@@ -20,6 +20,22 @@ fn scanrigd(state: &Path) -> Command {
     c
 }
 
+/// Start `cmd` (a [`scanrigd`] command) and wait for the address it prints; returns the child
+/// and `127.0.0.1:PORT` (it listens on every interface, tests talk to loopback only).
+fn start(mut cmd: Command) -> (std::process::Child, String) {
+    let mut child = cmd.stdout(Stdio::piped()).stderr(Stdio::null()).spawn().expect("spawn scanrigd");
+    let stdout = child.stdout.take().expect("stdout");
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = BufReader::new(stdout).read_line(&mut line);
+        let _ = tx.send(line);
+    });
+    let line = rx.recv_timeout(Duration::from_secs(20)).expect("scanrigd did not start in 20 s");
+    let port = line.trim().rsplit(':').next().expect("port").to_owned();
+    (child, format!("127.0.0.1:{port}"))
+}
+
 #[test]
 fn a_non_loopback_address_needs_a_token_and_every_request_carries_it() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -34,23 +50,9 @@ fn a_non_loopback_address_needs_a_token_and_every_request_carries_it() {
     let token_file = dir.path().join("token");
     std::fs::write(&token_file, "s3cret-token\n").expect("write token");
     std::fs::set_permissions(&token_file, std::fs::Permissions::from_mode(0o600)).expect("chmod");
-    let mut child = scanrigd(dir.path())
-        .arg("--token-file")
-        .arg(&token_file)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("spawn scanrigd");
-    let stdout = child.stdout.take().expect("stdout");
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = BufReader::new(stdout).read_line(&mut line);
-        let _ = tx.send(line);
-    });
-    let line = rx.recv_timeout(Duration::from_secs(20)).expect("scanrigd did not start in 20 s");
-    let port = line.trim().rsplit(':').next().expect("port").to_owned();
-    let addr = format!("127.0.0.1:{port}");
+    let mut cmd = scanrigd(dir.path());
+    cmd.arg("--token-file").arg(&token_file);
+    let (mut child, addr) = start(cmd);
 
     let anonymous = Client::new(&addr, None).expect("client").with_timeout(Duration::from_secs(10));
     let r = anonymous.raw("GET", "/api/v1/status", None).expect("request");
@@ -175,22 +177,9 @@ fn http(addr: &str, method: &str, path: &str, headers: &[&str], body: Option<&st
 #[test]
 fn a_browser_signs_in_with_the_token_and_its_session_cookie_is_checked_like_the_token() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let mut child = scanrigd(dir.path())
-        .env("SCANRIGD_TOKEN", "s3cret-token")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("spawn scanrigd");
-    let stdout = child.stdout.take().expect("stdout");
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = BufReader::new(stdout).read_line(&mut line);
-        let _ = tx.send(line);
-    });
-    let line = rx.recv_timeout(Duration::from_secs(20)).expect("scanrigd did not start in 20 s");
-    let port = line.trim().rsplit(':').next().expect("port").to_owned();
-    let addr = format!("127.0.0.1:{port}");
+    let mut cmd = scanrigd(dir.path());
+    cmd.env("SCANRIGD_TOKEN", "s3cret-token");
+    let (mut child, addr) = start(cmd);
     let origin = format!("Origin: http://{addr}");
 
     // Open without a credential: the page and its files (so it can show the sign-in form) and
