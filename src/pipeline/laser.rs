@@ -336,22 +336,13 @@ pub struct PlaneFit {
 /// Fit a plane to `points` (metres) robustly: RANSAC over random triples, the candidate with the most
 /// inliers refitted by least squares over its inliers, twice. Needs at least 3 inliers not on a line.
 pub fn fit_plane(points: &[Vector3<f64>], params: &PlaneFitParams) -> Result<PlaneFit, LaserError> {
-    if !(params.inlier_m.is_finite() && params.inlier_m > 0.0) {
-        return Err(LaserError::Parameter { name: "inlier_m", value: params.inlier_m, expected: "positive metres" });
-    }
+    check_inlier_distance(params)?;
     let n = points.len();
     let fail = |inliers| LaserError::PlaneFit { points: n, inliers, needed: 3 };
     if n < 3 {
         return Err(fail(0));
     }
-    let mut state = params.seed ^ 0x9e37_79b9_7f4a_7c15;
-    let mut next = move |m: usize| {
-        state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        ((z ^ (z >> 31)) % m as u64) as usize
-    };
+    let mut next = sample_indices(params.seed);
     let inliers_of = |plane: &Plane| -> Vec<Vector3<f64>> {
         points.iter().filter(|p| plane.distance(p).abs() <= params.inlier_m).copied().collect()
     };
@@ -378,6 +369,27 @@ pub fn fit_plane(points: &[Vector3<f64>], params: &PlaneFitParams) -> Result<Pla
     Ok(PlaneFit { plane, inliers: inl.len(), points: n, rms_m })
 }
 
+/// A seeded stream of indices below `m` (splitmix64), so plane fits are repeatable.
+fn sample_indices(seed: u64) -> impl FnMut(usize) -> usize {
+    let mut state = seed ^ 0x9e37_79b9_7f4a_7c15;
+    move |m: usize| {
+        state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        ((z ^ (z >> 31)) % m as u64) as usize
+    }
+}
+
+/// The inlier distance must be a positive number of metres.
+fn check_inlier_distance(params: &PlaneFitParams) -> Result<(), LaserError> {
+    if params.inlier_m.is_finite() && params.inlier_m > 0.0 {
+        Ok(())
+    } else {
+        Err(LaserError::Parameter { name: "inlier_m", value: params.inlier_m, expected: "positive metres" })
+    }
+}
+
 /// The laser planes in stripe points of several target poses (`sets[k]`: the points of pose `k`, a
 /// board's stripe points say): one pose's points lie on the target's surface (a board: one plane
 /// holding every laser's line), so only a plane that two or more poses each give at least
@@ -391,21 +403,12 @@ pub fn fit_planes_across(
     min_per_set: usize,
     max_planes: usize,
 ) -> Result<Vec<PlaneFit>, LaserError> {
-    if !(params.inlier_m.is_finite() && params.inlier_m > 0.0) {
-        return Err(LaserError::Parameter { name: "inlier_m", value: params.inlier_m, expected: "positive metres" });
-    }
+    check_inlier_distance(params)?;
     let min_per_set = min_per_set.max(3);
     let mut left: Vec<(Vector3<f64>, usize)> =
         sets.iter().enumerate().flat_map(|(k, s)| s.iter().map(move |p| (*p, k))).collect();
     let total = left.len();
-    let mut state = params.seed ^ 0x9e37_79b9_7f4a_7c15;
-    let mut next = move |m: usize| {
-        state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        ((z ^ (z >> 31)) % m as u64) as usize
-    };
+    let mut next = sample_indices(params.seed);
     // Inliers per set, and whether two sets give `min_per_set` each.
     let support = |plane: &Plane, pts: &[(Vector3<f64>, usize)]| {
         let mut per = vec![0usize; sets.len()];
