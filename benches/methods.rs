@@ -9,7 +9,8 @@
 //! one run. Each case prints a line and a `PERF` line (JSON) for `benches/perf_table.py`; a peer
 //! that cannot run (no python3, no Open3D) is reported as such, with no ratio.
 //!
-//! `cargo bench --bench methods`; `PYTHON=...` picks the interpreter.
+//! `cargo bench --bench methods [-- tsdf laser structured-light shadow]`; `PYTHON=...` picks the
+//! interpreter.
 
 use std::hint::black_box;
 use std::path::Path;
@@ -359,7 +360,10 @@ fn shadow_carving() {
 }
 
 fn main() {
-    // `cargo bench` passes `--bench`; nothing to parse.
+    // `cargo bench --bench methods -- NAME...` runs only the named cases (tsdf, laser,
+    // structured-light, shadow); `cargo bench` itself passes `--bench`, which is not a name.
+    let names: Vec<String> = std::env::args().skip(1).filter(|a| !a.starts_with("--")).collect();
+    let wanted = |case: &str| names.is_empty() || names.iter().any(|n| n == case);
     let dir = tempfile::tempdir().expect("temporary directory");
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!(
@@ -367,8 +371,16 @@ fn main() {
         std::thread::available_parallelism().map_or(0, |n| n.get()),
         load.trim()
     );
-    tsdf(dir.path());
-    laser(dir.path());
-    structured_light();
-    shadow_carving();
+    if wanted("tsdf") {
+        tsdf(dir.path());
+    }
+    if wanted("laser") {
+        laser(dir.path());
+    }
+    if wanted("structured-light") {
+        structured_light();
+    }
+    if wanted("shadow") {
+        shadow_carving();
+    }
 }
