@@ -3,6 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
+use nalgebra::Rotation3;
+use scanrig::calibration::opencv_yaml;
 use scanrig::dataset::{self, DatasetError, DatasetOptions, MaskSource, ViewSelection};
 use scanrig::geometry::{Aabb, VoxelGrid};
 use scanrig::pipeline::{SilhouetteParams, SpaceCarver};
@@ -63,6 +65,99 @@ fn projection_matrix_file_gives_the_same_hull_as_the_par_file() {
     c2.add_views(&proj.carving_views()).expect("carve");
     let o = c1.occupancy().iou_and_containment(c2.occupancy()).expect("same grid");
     assert!(o.iou > 0.9999, "{o:?}");
+}
+
+/// OpenCV FileStorage with one camera and per-view extrinsics (`extrinsic_parameters`, Rodrigues
+/// vector + translation per row, as OpenCV's calibration sample writes them) and an `images`
+/// sequence, YAML and XML: the same hull as the Middlebury file it was written from. The stated
+/// image size is checked against the masks.
+#[test]
+fn opencv_file_storage_with_per_view_extrinsics_gives_the_same_hull_as_the_par_file() {
+    let dir = fixture_dir();
+    let good = ViewSelection::File(dir.join("dinoSR_good_silhouette_images.txt"));
+    let par = dataset::load(&options(dir.join("dinoSR_par.txt"), good)).expect("par");
+    let k = par.views[0].camera.intrinsics;
+    assert!(par.views.iter().all(|v| v.camera.intrinsics == k), "the dino has one camera");
+    let rows: Vec<String> = par
+        .views
+        .iter()
+        .map(|v| {
+            let r = Rotation3::from_matrix(&v.camera.pose.rotation).scaled_axis();
+            let t = v.camera.pose.translation;
+            [r.x, r.y, r.z, t.x, t.y, t.z].map(|x| format!("{x:.17e}")).join(", ")
+        })
+        .collect();
+    let names: Vec<&str> = par.views.iter().map(|v| v.name.as_str()).collect();
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let camera = opencv_yaml::camera_yaml(&k, 640, 480, 0.0);
+    let yaml = format!(
+        "{camera}extrinsic_parameters: !!opencv-matrix\n   rows: {}\n   cols: 6\n   dt: d\n   data: [ {} ]\nimages:\n{}",
+        rows.len(),
+        rows.join(",\n       "),
+        names.iter().map(|n| format!("   - \"{n}\"\n")).collect::<String>()
+    );
+    let d = k.distortion();
+    let xml = format!(
+        "<?xml version=\"1.0\"?>\n<opencv_storage>\n<image_width>640</image_width>\n<image_height>480</image_height>\n\
+         <camera_matrix type_id=\"opencv-matrix\">\n  <rows>3</rows>\n  <cols>3</cols>\n  <dt>d</dt>\n  <data>\n    \
+         {:.17e} {:.17e} {:.17e} 0. {:.17e} {:.17e} 0. 0. 1.</data></camera_matrix>\n\
+         <distortion_coefficients type_id=\"opencv-matrix\">\n  <rows>5</rows>\n  <cols>1</cols>\n  <dt>d</dt>\n  \
+         <data>{} {} {} {} {}</data></distortion_coefficients>\n\
+         <extrinsic_parameters type_id=\"opencv-matrix\">\n  <rows>{}</rows>\n  <cols>6</cols>\n  <dt>d</dt>\n  \
+         <data>\n    {}</data></extrinsic_parameters>\n<images>\n  {}</images>\n</opencv_storage>\n",
+        k.fx,
+        k.skew,
+        k.cx - 0.5,
+        k.fy,
+        k.cy - 0.5,
+        d[0],
+        d[1],
+        d[2],
+        d[3],
+        d[4],
+        rows.len(),
+        rows.join("\n    ").replace(',', ""),
+        names.join(" ")
+    );
+    let grid = VoxelGrid::from_resolution(&DINO_BOX, 64);
+    let mut reference = SpaceCarver::new(grid).expect("carver");
+    reference.add_views(&par.carving_views()).expect("carve");
+    for (file, text) in [("calib.yml", &yaml), ("calib.xml", &xml)] {
+        let path = tmp.path().join(file);
+        std::fs::write(&path, text).expect("write");
+        let ds = dataset::load(&options(path.clone(), ViewSelection::All)).unwrap_or_else(|e| panic!("{file}: {e}"));
+        assert_eq!(ds.views.len(), 15, "{file}");
+        for (a, b) in par.views.iter().zip(&ds.views) {
+            assert_eq!(a.name, b.name);
+            assert!((a.camera.intrinsics.cx - b.camera.intrinsics.cx).abs() < 1e-9, "{file}");
+            assert!((a.camera.pose.translation - b.camera.pose.translation).norm() < 1e-12, "{file}");
+            assert!((a.camera.pose.rotation - b.camera.pose.rotation).norm() < 1e-4, "{file}");
+        }
+        let mut carver = SpaceCarver::new(grid).expect("carver");
+        carver.add_views(&ds.carving_views()).expect("carve");
+        let o = reference.occupancy().iou_and_containment(carver.occupancy()).expect("same grid");
+        assert!(o.iou > 0.9999, "{file}: {o:?}");
+    }
+    // Calibrated for another image size: an error naming the calibration and the mask.
+    let path = tmp.path().join("half.yml");
+    std::fs::write(&path, yaml.replace("image_width: 640", "image_width: 320")).expect("write");
+    let e = dataset::load(&options(path, ViewSelection::All)).expect_err("size");
+    assert!(matches!(e, DatasetError::CalibratedSize { width: 640, calibrated_width: 320, .. }), "{e}");
+    assert!(e.to_string().contains("half.yml:") && e.to_string().contains("320x480"), "{e}");
+    // One name short: the error names the file, the entry and both counts.
+    let path = tmp.path().join("short.yml");
+    std::fs::write(&path, yaml.replace(&format!("   - \"{}\"\n", names[14]), "")).expect("write");
+    let e = dataset::read_calibration(&path).expect_err("short");
+    let text = e.to_string();
+    assert!(
+        text.contains("short.yml:") && text.contains("images") && text.contains("14 image names for the 15"),
+        "{text}"
+    );
+    // No names at all.
+    let path = tmp.path().join("nameless.yml");
+    std::fs::write(&path, &yaml[..yaml.find("images:").expect("images")]).expect("write");
+    let text = dataset::read_calibration(&path).expect_err("nameless").to_string();
+    assert!(text.contains("nameless.yml") && text.contains("images"), "{text}");
 }
 
 #[test]

@@ -76,6 +76,17 @@ fn dino_photo_carving_reprojects_better_than_the_hull() {
             report["visual_hull"]["voxels"]
         );
         assert!(report["photo"]["measured_noise"].is_object(), "{method}: the default threshold is measured");
+        // Every good view takes part; voxel colouring's ordinal sweeps cover each of them.
+        assert_eq!(report["photo"]["views"].as_u64(), Some(15), "{method}");
+        if method == "voxel-coloring" {
+            let mut covered = [false; 15];
+            for sweep in report["photo"]["ordinal_sweeps"].as_array().expect("photo.ordinal_sweeps") {
+                for v in sweep["views"].as_array().expect("views") {
+                    covered[v.as_u64().expect("index") as usize] = true;
+                }
+            }
+            assert!(covered.iter().all(|&c| c), "a view in no sweep: {}", report["photo"]["ordinal_sweeps"]);
+        }
         assert!(model < hull, "{method}: photo carving {model} is not below the hull's {hull}");
         assert!(iou >= hull_iou, "{method}: IoU {iou} below the plain hull's {hull_iou}");
     }

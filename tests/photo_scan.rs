@@ -73,7 +73,8 @@ fn space_carving_photo_on_the_shipped_rig() {
     assert!(num(&report, "photo", "visits") < iterations * num(&report, "visual_hull", "voxels"));
 }
 
-/// Voxel colouring on a 90-degree arc: hull voxels visited at most once.
+/// Voxel colouring over ordinal sweeps: every one of the 36 views is used, each in a sweep along
+/// which it is in front of the working volume; each sweep visits a hull voxel at most once.
 #[test]
 #[cfg_attr(debug_assertions, ignore = "heavy: run with --release")]
 fn voxel_coloring_on_the_shipped_rig() {
@@ -82,8 +83,19 @@ fn voxel_coloring_on_the_shipped_rig() {
     let report = run_scan(&repo("config/rigs/voxel-coloring.toml"), &out);
     let (iou, hull, _, _) = check(&report, &out, "voxel-coloring");
     assert!(iou > hull, "IoU {iou} not above the visual hull's {hull}");
-    // At most once each; bricks are dropped unvisited only for cameras without lens distortion,
-    // which the shipped rig's cameras have, so here every hull voxel is visited.
-    assert!(num(&report, "photo", "visits") <= num(&report, "visual_hull", "voxels"));
-    assert!(num(&report, "photo", "views") < 36.0);
+    assert_eq!(num(&report, "photo", "views"), 36.0);
+    let sweeps = report["photo"]["ordinal_sweeps"].as_array().expect("photo.ordinal_sweeps");
+    assert_eq!(sweeps.len() as f64, num(&report, "photo", "sweeps"));
+    assert!(sweeps.len() >= 2, "a ring needs several sweeps: {sweeps:?}");
+    let mut covered = [false; 36];
+    for s in sweeps {
+        let views = s["views"].as_array().expect("views");
+        assert!(views.len() >= 2 && views.len() < 36, "{s}");
+        for v in views {
+            covered[v.as_u64().expect("index") as usize] = true;
+        }
+    }
+    assert!(covered.iter().all(|&c| c), "a view in no sweep: {sweeps:?}");
+    let visits = num(&report, "photo", "visits");
+    assert!(visits <= sweeps.len() as f64 * num(&report, "visual_hull", "voxels"), "{visits} visits");
 }

@@ -187,8 +187,10 @@ enum Command {
         /// Working volume xmin,ymin,zmin,xmax,ymax,zmax in metres (default: estimated from the views).
         #[arg(long, allow_hyphen_values = true)]
         bbox: Option<String>,
-        /// Calibration file. With --dataset: Middlebury `*_par.txt`, projection matrices or a COLMAP
-        /// model (default: the one `*_par.txt` in the data set directory). With --scan: a calibration
+        /// Calibration file. With --dataset: Middlebury `*_par.txt`, projection matrices, a COLMAP
+        /// model or an OpenCV FileStorage file (YAML or XML: one camera, `extrinsic_parameters` with a
+        /// row per view and the views' names in `images`) (default: the one `*_par.txt` in the data
+        /// set directory). With --scan: a calibration
         /// file of `scanrig calibrate` or an OpenCV FileStorage camera file (YAML or XML:
         /// camera_matrix, distortion_coefficients, optional pose R, T in metres) applied over the
         /// stored rig's camera, as a rig file's `[rig] calibration` is.
@@ -209,7 +211,8 @@ enum Command {
         #[arg(long)]
         smooth: Option<u32>,
         /// Photo-consistency test of voxel-coloring / space-carving-photo:
-        /// threshold=T,min_cos=C,min_views=N[,ncc=X][,arc=DEG] (T in 0..255 levels).
+        /// threshold=T,min_cos=C,min_views=N[,ncc=X][,iterations=I] (T in 0..255 levels, or
+        /// `measured`).
         #[arg(long)]
         photo: Option<String>,
         /// Output directory.

@@ -71,7 +71,7 @@ fn inner<'a>(s: &'a str, tag: &str) -> Option<&'a str> {
 
 /// Byte range of the body of the top-level element `name` (between its start tag's `>` and its end
 /// tag) and the line it starts on.
-fn element<'a>(text: &'a str, name: &str) -> Option<(&'a str, usize)> {
+pub(super) fn element<'a>(text: &'a str, name: &str) -> Option<(&'a str, usize)> {
     let mut from = 0;
     while let Some(off) = text[from..].find(&format!("<{name}")) {
         let start = from + off;

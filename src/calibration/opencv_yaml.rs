@@ -5,6 +5,9 @@
 //!   the distortion under one of `distortion_coefficients`, `distCoeffs`, `dist_coeffs`, `D`,
 //!   `cam_dist`, `D1` (4, 5, 8, 12 or 14 terms; the first five are `k1 k2 p1 p2 k3` and any further
 //!   rational/prism/tilt term must be 0); `image_width` / `image_height` when present.
+//! - Read several views of one camera ([`parse_views`]): OpenCV's calibration sample's
+//!   `extrinsic_parameters` (one row per view: Rodrigues vector, translation) with the views' image
+//!   names in the string sequence `images`, as OpenCV's `imagelist_creator` writes it.
 //! - Write ([`camera_yaml`]): `image_width`, `image_height`, `camera_matrix`,
 //!   `distortion_coefficients` (5 terms), `avg_reprojection_error`.
 //!
@@ -13,7 +16,7 @@
 
 use std::path::Path;
 
-use super::opencv_xml::{lens, read_matrix, OpenCvMatrix, OpenCvXmlError};
+use super::opencv_xml::{element, lens, read_matrix, OpenCvMatrix, OpenCvXmlError};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
 use crate::geometry::{Intrinsics, Pose};
@@ -128,6 +131,27 @@ pub fn parse_camera(text: &str, path: &Path) -> Result<OpenCvCamera, OpenCvXmlEr
     Ok(OpenCvCamera { intrinsics, size })
 }
 
+/// The rotation of `v` (9 values row-major, or a Rodrigues vector of 3, radians) from the matrix `m`
+/// named `name`; an error naming the file and line when it is neither or not a rotation.
+fn rotation(path: &Path, name: &str, m: &OpenCvMatrix, v: &[f64]) -> Result<Matrix3<f64>, OpenCvXmlError> {
+    let bad = |reason: String| OpenCvXmlError::Malformed {
+        path: path.to_path_buf(),
+        line: m.line,
+        field: name.into(),
+        reason,
+    };
+    let r = match v.len() {
+        9 => Matrix3::from_row_slice(v),
+        3 => *Rotation3::new(Vector3::new(v[0], v[1], v[2])).matrix(),
+        n => return Err(bad(format!("a rotation is 3x3 or a Rodrigues vector of 3, got {n} values"))),
+    };
+    let orth = (r.transpose() * r - Matrix3::identity()).norm();
+    if orth > 1e-3 || r.determinant() < 0.0 {
+        return Err(bad(format!("not a rotation (|RᵀR - I| = {orth:.2e})")));
+    }
+    Ok(r)
+}
+
 /// A FileStorage camera and, when the file has one, its pose.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct OpenCvCalibration {
@@ -158,37 +182,141 @@ pub fn parse_calibration(text: &str, path: &Path) -> Result<OpenCvCalibration, O
         Err(OpenCvXmlError::Missing { .. }) => Ok(None),
         Err(e) => Err(e),
     };
-    let rotation = |name: &str, m: &OpenCvMatrix, v: &[f64]| -> Result<Matrix3<f64>, OpenCvXmlError> {
-        let r = match v.len() {
-            9 => Matrix3::from_row_slice(v),
-            3 => *Rotation3::new(Vector3::new(v[0], v[1], v[2])).matrix(),
-            n => return Err(bad(m, name, format!("a rotation is 3x3 or a Rodrigues vector of 3, got {n} values"))),
-        };
-        let orth = (r.transpose() * r - Matrix3::identity()).norm();
-        if orth > 1e-3 || r.determinant() < 0.0 {
-            return Err(bad(m, name, format!("not a rotation (|RᵀR - I| = {orth:.2e})")));
-        }
-        Ok(r)
-    };
     let pose = match (optional(&R_NAMES)?, optional(&T_NAMES)?) {
         (Some((rn, r)), Some((tn, t))) => {
             if t.data.len() != 3 {
                 return Err(bad(&t, tn, format!("a translation has 3 values, got {}", t.data.len())));
             }
-            Some(Pose { rotation: rotation(rn, &r, &r.data)?, translation: Vector3::from_column_slice(&t.data) })
+            Some(Pose { rotation: rotation(path, rn, &r, &r.data)?, translation: Vector3::from_column_slice(&t.data) })
         }
         (Some((n, m)), None) | (None, Some((n, m))) => {
             return Err(bad(&m, n, "a pose needs both a rotation (R) and a translation (T)".into()))
         }
         (None, None) => match optional(&["extrinsic_parameters"])? {
             Some((n, e)) if e.data.len() == 6 => Some(Pose {
-                rotation: rotation(n, &e, &e.data[..3])?,
+                rotation: rotation(path, n, &e, &e.data[..3])?,
                 translation: Vector3::from_column_slice(&e.data[3..]),
             }),
             _ => None,
         },
     };
     Ok(OpenCvCalibration { camera, pose })
+}
+
+/// One view of an [`OpenCvViews`] file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OpenCvView {
+    /// Image file name, as the file lists it.
+    pub name: String,
+    /// World (board) frame -> camera frame, `x_cam = R x_world + t`; translation in the file's
+    /// length unit (metres when the board's square size was given in metres).
+    pub pose: Pose,
+}
+
+/// One camera seen in several views, read from a FileStorage file (see [`parse_views`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct OpenCvViews {
+    /// The camera, this project's pixel convention.
+    pub camera: OpenCvCamera,
+    /// The views, in the file's order.
+    pub views: Vec<OpenCvView>,
+    /// 1-based line of `extrinsic_parameters`.
+    pub line: usize,
+}
+
+/// The string sequence `name` of a FileStorage file: YAML `name:` followed by `- item` lines or an
+/// inline `[ "a", "b" ]`; XML `<name>a "b c"</name>` (whitespace-separated, quoted when an item holds
+/// a space). `None` when the file has no such entry; the 1-based line of the entry with the items.
+pub fn read_string_list(text: &str, name: &str) -> Option<(Vec<String>, usize)> {
+    let unquote = |t: &str| t.trim().trim_matches('"').trim_matches('\'').to_string();
+    if is_yaml(text) {
+        let key = format!("{name}:");
+        let lines: Vec<&str> = text.lines().collect();
+        let start = lines.iter().position(|l| l.starts_with(&key))?;
+        let rest = lines[start][key.len()..].trim();
+        let items = if let Some(inline) = rest.strip_prefix('[') {
+            let inline = inline.trim_end().trim_end_matches(']');
+            inline.split(',').map(unquote).filter(|t| !t.is_empty()).collect()
+        } else {
+            lines[start + 1..]
+                .iter()
+                .take_while(|l| l.starts_with(' ') || l.starts_with('-') || l.trim().is_empty())
+                .filter_map(|l| l.trim().strip_prefix('-').map(unquote))
+                .collect()
+        };
+        return Some((items, start + 1));
+    }
+    let (body, line) = element(text, name)?;
+    let mut items = Vec::new();
+    let mut chars = body.trim().chars().peekable();
+    while let Some(&c) = chars.peek() {
+        if c.is_whitespace() {
+            chars.next();
+        } else if c == '"' {
+            chars.next();
+            items.push(chars.by_ref().take_while(|&c| c != '"').collect());
+        } else {
+            let mut item = String::new();
+            while let Some(&c) = chars.peek() {
+                if c.is_whitespace() {
+                    break;
+                }
+                item.push(c);
+                chars.next();
+            }
+            items.push(item);
+        }
+    }
+    Some((items, line))
+}
+
+/// Parse a FileStorage file holding one camera and several views of it (`path` names it in
+/// errors): the camera as [`parse_camera`] reads it, `extrinsic_parameters` (N x 6: each row a
+/// Rodrigues vector, radians, and a translation, world -> camera, as OpenCV's calibration sample
+/// writes it) and the image names of the N views in the string sequence `images`, in the same
+/// order.
+pub fn parse_views(text: &str, path: &Path) -> Result<OpenCvViews, OpenCvXmlError> {
+    let camera = parse_camera(text, path)?;
+    let field = "extrinsic_parameters";
+    let e = read_any_matrix(text, path, field)?;
+    let bad = |line: usize, field: &str, reason: String| OpenCvXmlError::Malformed {
+        path: path.to_path_buf(),
+        line,
+        field: field.into(),
+        reason,
+    };
+    if e.cols != 6 || e.rows == 0 {
+        return Err(bad(
+            e.line,
+            field,
+            format!("one row of 6 (Rodrigues vector, translation) per view, got {}x{}", e.rows, e.cols),
+        ));
+    }
+    let (names, names_line) = read_string_list(text, "images").ok_or_else(|| OpenCvXmlError::Missing {
+        path: path.to_path_buf(),
+        field: "images (the views' image names, one per row of extrinsic_parameters)".into(),
+    })?;
+    if names.len() != e.rows {
+        return Err(bad(
+            names_line,
+            "images",
+            format!("{} image names for the {} views of extrinsic_parameters (line {})", names.len(), e.rows, e.line),
+        ));
+    }
+    let views = names
+        .into_iter()
+        .zip(e.data.chunks_exact(6))
+        .map(|(name, row)| {
+            Ok(OpenCvView {
+                name,
+                pose: Pose {
+                    rotation: rotation(path, field, &e, &row[..3])?,
+                    translation: Vector3::from_column_slice(&row[3..]),
+                },
+            })
+        })
+        .collect::<Result<Vec<_>, OpenCvXmlError>>()?;
+    Ok(OpenCvViews { camera, views, line: e.line })
 }
 
 /// Read a FileStorage file's camera and pose (see [`parse_calibration`]).
@@ -256,6 +384,31 @@ mod tests {
             is_file_storage(&cam) && is_file_storage("<?xml version=\"1.0\"?>\n<opencv_storage>\n</opencv_storage>")
         );
         assert!(!is_file_storage("format_version = 1\n"));
+    }
+
+    #[test]
+    fn string_lists_read_in_every_layout_opencv_writes() {
+        let block = "%YAML:1.0\nimages:\n   - \"a 1.png\"\n   - b.png\nnext: 1\n";
+        assert_eq!(read_string_list(block, "images"), Some((vec!["a 1.png".into(), "b.png".into()], 2)));
+        let inline = "%YAML:1.0\nx: 2\nimages: [ \"a.png\", 'b.png' ]\n";
+        assert_eq!(read_string_list(inline, "images"), Some((vec!["a.png".into(), "b.png".into()], 3)));
+        let xml =
+            "<?xml version=\"1.0\"?>\n<opencv_storage>\n<images>\n  \"a 1.png\" b.png</images>\n</opencv_storage>\n";
+        assert_eq!(read_string_list(xml, "images"), Some((vec!["a 1.png".into(), "b.png".into()], 3)));
+        assert_eq!(read_string_list(block, "names"), None);
+        // Views: a row of six per view, as many names as rows; a bad rotation names the line.
+        let cam = camera_yaml(&Intrinsics::new(800.0, 800.0, 320.5, 240.5), 640, 480, 0.1);
+        let ex = |rows: usize, data: &str| {
+            format!("{cam}extrinsic_parameters: !!opencv-matrix\n   rows: {rows}\n   cols: 6\n   dt: d\n   data: [ {data} ]\n")
+        };
+        let two = format!("{}images:\n   - a.png\n   - b.png\n", ex(2, "0, 0, 0, 0, 0, 1, 0, 0.5, 0, 0.1, 0, 1"));
+        let v = parse_views(&two, Path::new("v.yml")).expect("two views");
+        assert_eq!(v.views.len(), 2);
+        assert_eq!((v.views[1].name.as_str(), v.views[1].pose.translation.x), ("b.png", 0.1));
+        assert!((v.views[1].pose.rotation[(0, 2)] - 0.5f64.sin()).abs() < 1e-12);
+        let e = parse_views(&format!("{}images: [ a.png ]\n", ex(1, "0, 0, 0, 0, 0, 1, 0, 0, 0")), Path::new("v.yml"))
+            .expect_err("9 columns");
+        assert!(e.to_string().contains("extrinsic_parameters"), "{e}");
     }
 
     #[test]

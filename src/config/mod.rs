@@ -760,9 +760,6 @@ impl RigConfig {
         if !(-1.0..=1.0).contains(&p.min_cos) {
             bad("reconstruction.photo.min_cos", format!("must be in [-1, 1], got {}", p.min_cos));
         }
-        if !(p.arc_deg.is_finite() && p.arc_deg > 0.0 && p.arc_deg < 180.0) {
-            bad("reconstruction.photo.arc_deg", format!("must be in (0, 180) degrees, got {}", p.arc_deg));
-        }
         if let Some(r) = &self.replication {
             out.extend(r.validate());
         }

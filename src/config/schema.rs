@@ -866,7 +866,8 @@ pub enum Method {
     ShadowCarving,
     /// TSDF fusion of the depth camera's maps over turntable positions.
     DepthFusion,
-    /// Voxel colouring with the ordinal visibility constraint (cameras on one side of a plane).
+    /// Voxel colouring with the ordinal visibility constraint: one sweep per direction, each with
+    /// the views on the near side of the working volume along it (every view in some sweep).
     VoxelColoring,
     /// Generalized space carving by photo-consistency, from the visual hull (any camera placement).
     SpaceCarvingPhoto,
@@ -942,11 +943,6 @@ pub struct PhotoConfig {
     /// Cap on carving iterations.
     #[serde(default = "default_photo_iterations")]
     pub max_iterations: usize,
-    /// `voxel-coloring` only: use the views whose viewing direction (from the working volume's
-    /// centre) is within this angle of the first view's, on either side, degrees (the ordinal
-    /// visibility constraint needs the cameras on one side of a plane).
-    #[serde(default = "default_photo_arc")]
-    pub arc_deg: f64,
 }
 
 fn default_photo_min_views() -> usize {
@@ -958,9 +954,6 @@ fn default_photo_min_cos() -> f64 {
 fn default_photo_iterations() -> usize {
     500
 }
-fn default_photo_arc() -> f64 {
-    45.0
-}
 
 impl Default for PhotoConfig {
     fn default() -> Self {
@@ -970,7 +963,6 @@ impl Default for PhotoConfig {
             min_views: default_photo_min_views(),
             min_cos: default_photo_min_cos(),
             max_iterations: default_photo_iterations(),
-            arc_deg: default_photo_arc(),
         }
     }
 }

@@ -11,6 +11,11 @@
 //!
 //! - **COLMAP text model**: a directory with `cameras.txt` and `images.txt` (see [`parse_colmap`]),
 //!   with the models' lens distortion.
+//! - **OpenCV FileStorage** (YAML `%YAML:1.0` or XML `<opencv_storage>`): one camera with its lens
+//!   distortion (`camera_matrix`, `distortion_coefficients`), one view per row of
+//!   `extrinsic_parameters` (Rodrigues vector, translation; as OpenCV's calibration sample writes
+//!   them) and the views' image names in the string sequence `images` (see
+//!   [`crate::calibration::opencv_yaml::parse_views`]).
 //!
 //! Cameras have no lens distortion in the first two formats. Image names are relative to the data set
 //! directory.
@@ -113,6 +118,16 @@ pub enum DatasetError {
         #[source]
         source: std::num::ParseIntError,
     },
+    /// An image size is not two positive whole numbers of pixels.
+    #[error("{path}:{line}: image size {token:?} is not WIDTH HEIGHT in pixels")]
+    BadSize {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+        /// The offending tokens.
+        token: String,
+    },
     /// A value is infinite or NaN.
     #[error("{path}:{line}: non-finite value {token:?}")]
     NonFinite {
@@ -141,6 +156,9 @@ pub enum DatasetError {
         /// 1-based line.
         line: usize,
     },
+    /// An OpenCV FileStorage calibration is missing an entry or has a malformed one.
+    #[error(transparent)]
+    OpenCv(#[from] crate::calibration::opencv_xml::OpenCvXmlError),
     /// The calibration file lists no view.
     #[error("{path}: no views")]
     NoViews {
@@ -168,6 +186,24 @@ pub enum DatasetError {
         expected_width: u32,
         /// Image height, px.
         expected_height: u32,
+    },
+    /// An image (or its mask) is not the size its calibration is for.
+    #[error("{calibration}:{line}: {path} is {width}x{height} px but the calibration is for {calibrated_width}x{calibrated_height} px")]
+    CalibratedSize {
+        /// The calibration file.
+        calibration: PathBuf,
+        /// Line of the view's entry.
+        line: usize,
+        /// The image file.
+        path: PathBuf,
+        /// Image width, px.
+        width: u32,
+        /// Image height, px.
+        height: u32,
+        /// Width in the calibration, px.
+        calibrated_width: u32,
+        /// Height in the calibration, px.
+        calibrated_height: u32,
     },
     /// A COLMAP camera model this project's lens model cannot represent.
     #[error("{path}:{line}: camera model {model} is not supported (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV with k4..k6 = 0)")]
@@ -208,12 +244,16 @@ pub enum DatasetError {
 pub struct Calibration {
     /// Image file name, relative to the data set directory.
     pub name: String,
-    /// Intrinsics, pixels (no distortion).
+    /// Intrinsics, pixels, with the file's lens distortion (none in the Middlebury and
+    /// projection-matrix formats).
     pub intrinsics: Intrinsics,
     /// World -> camera, metres.
     pub pose: Pose,
     /// Line of the calibration file this came from (1-based).
     pub line: usize,
+    /// The image size the calibration is for, pixels, when the file states it (COLMAP, OpenCV
+    /// FileStorage with `image_width` / `image_height`); an image of another size is an error.
+    pub size: Option<(u32, u32)>,
 }
 
 impl Calibration {
@@ -279,6 +319,7 @@ pub fn parse_par(text: &str, path: &Path) -> Result<Vec<Calibration>, DatasetErr
             intrinsics: Intrinsics::from_matrix(&k),
             pose: Pose { rotation: r, translation: t },
             line,
+            size: None,
         });
     }
     if out.len() != declared {
@@ -401,7 +442,7 @@ pub fn parse_projections(text: &str, path: &Path) -> Result<Vec<Calibration>, Da
                 None => decompose_projection(&p),
             };
             let (intrinsics, pose) = d.ok_or(DatasetError::DegenerateProjection { path: path.to_path_buf(), line })?;
-            Ok(Calibration { name, intrinsics, pose, line })
+            Ok(Calibration { name, intrinsics, pose, line, size: None })
         })
         .collect()
 }
@@ -463,7 +504,18 @@ pub fn parse_colmap(
                     })
                 }
             };
-        cams.insert(t[0].to_string(), intr);
+        let size = (t[2].parse::<u32>().ok(), t[3].parse::<u32>().ok());
+        let size = match size {
+            (Some(w), Some(h)) if w > 0 && h > 0 => (w, h),
+            _ => {
+                return Err(DatasetError::BadSize {
+                    path: cameras_path.to_path_buf(),
+                    line,
+                    token: format!("{} {}", t[2], t[3]),
+                })
+            }
+        };
+        cams.insert(t[0].to_string(), (intr, size));
     }
     let mut out = Vec::new();
     let mut expect_header = true;
@@ -495,7 +547,7 @@ pub fn parse_colmap(
             return Err(DatasetError::DegenerateProjection { path: images_path.to_path_buf(), line });
         }
         let rotation = nalgebra::UnitQuaternion::from_quaternion(q).to_rotation_matrix().into_inner();
-        let intrinsics = *cams.get(t[8]).ok_or_else(|| DatasetError::UnknownView {
+        let (intrinsics, size) = *cams.get(t[8]).ok_or_else(|| DatasetError::UnknownView {
             source_name: format!(
                 "{}:{line}: camera id {} is not in {}",
                 images_path.display(),
@@ -509,6 +561,7 @@ pub fn parse_colmap(
             intrinsics,
             pose: Pose { rotation, translation: Vector3::new(v[4], v[5], v[6]) },
             line,
+            size: Some(size),
         });
     }
     if out.is_empty() {
@@ -518,8 +571,9 @@ pub fn parse_colmap(
 }
 
 /// Read a calibration: a COLMAP text model when `path` is a directory holding `cameras.txt` and
-/// `images.txt` (or one of those two files); otherwise a file, in the Middlebury format when the
-/// first content line is a single integer, projection matrices otherwise.
+/// `images.txt` (or one of those two files); otherwise a file: an OpenCV FileStorage file (YAML or
+/// XML, see the module docs), in the Middlebury format when the first content line is a single
+/// integer, projection matrices otherwise.
 pub fn read_calibration(path: &Path) -> Result<Vec<Calibration>, DatasetError> {
     let colmap_dir = if path.is_dir() {
         Some(path.to_path_buf())
@@ -534,6 +588,15 @@ pub fn read_calibration(path: &Path) -> Result<Vec<Calibration>, DatasetError> {
         return parse_colmap(&read_text(&c)?, &c, &read_text(&i)?, &i);
     }
     let text = read_text(path)?;
+    if crate::calibration::opencv_yaml::is_file_storage(&text) {
+        let file = crate::calibration::opencv_yaml::parse_views(&text, path)?;
+        let intrinsics = file.camera.intrinsics;
+        return Ok(file
+            .views
+            .into_iter()
+            .map(|v| Calibration { name: v.name, intrinsics, pose: v.pose, line: file.line, size: file.camera.size })
+            .collect());
+    }
     let first = content_lines(&text).next().map(|(_, l)| l.split_whitespace().count() == 1).unwrap_or(false);
     if first {
         parse_par(&text, path)
@@ -823,6 +886,17 @@ pub fn load(opts: &DatasetOptions) -> Result<Dataset, DatasetError> {
                     mask
                 }
             };
+            if let Some((width, height)) = cal.size.filter(|&s| s != (mask.width(), mask.height())) {
+                return Err(DatasetError::CalibratedSize {
+                    calibration: cal_path.clone(),
+                    line: cal.line,
+                    path: image_path,
+                    width: mask.width(),
+                    height: mask.height(),
+                    calibrated_width: width,
+                    calibrated_height: height,
+                });
+            }
             Ok(DatasetView { name: cal.name.clone(), camera: cal.camera(mask.width(), mask.height()), mask, image })
         })
         .collect::<Result<Vec<_>, DatasetError>>()?;

@@ -76,7 +76,8 @@ pub struct ColouredSurface {
 pub struct PhotoStats {
     /// Iterations (generalized space carving) or layers (voxel colouring).
     pub iterations: usize,
-    /// Plane sweeps (generalized space carving: six per iteration).
+    /// Plane sweeps (the multi-sweep carver: six per iteration; voxel colouring over ordinal sweeps:
+    /// one per direction; otherwise 0).
     pub sweeps: usize,
     /// Voxels judged (visits).
     pub visits: u64,

@@ -288,7 +288,7 @@ pub fn dataset_options(
     }
 }
 
-/// Parse `threshold=T,min_cos=C,min_views=N,ncc=X,arc=DEG,iterations=I` (any subset, any order) over
+/// Parse `threshold=T,min_cos=C,min_views=N,ncc=X,iterations=I` (any subset, any order) over
 /// the defaults of `[reconstruction.photo]`; `threshold=measured` (the default) derives the threshold
 /// from the data's measured noise.
 pub fn parse_photo(text: &str) -> Result<crate::config::PhotoConfig, &'static str> {
@@ -301,10 +301,9 @@ pub fn parse_photo(text: &str) -> Result<crate::config::PhotoConfig, &'static st
             "threshold" => c.threshold = Some(num()?),
             "min_cos" => c.min_cos = num()?,
             "ncc" => c.min_ncc = Some(num()?),
-            "arc" => c.arc_deg = num()?,
             "min_views" => c.min_views = value.trim().parse().map_err(|_| "min_views is not a count")?,
             "iterations" => c.max_iterations = value.trim().parse().map_err(|_| "iterations is not a count")?,
-            _ => return Err("unknown key (known: threshold, min_cos, min_views, ncc, arc, iterations)"),
+            _ => return Err("unknown key (known: threshold, min_cos, min_views, ncc, iterations)"),
         }
     }
     if c.threshold.is_some_and(|t| !(t > 0.0 && t <= 255.0)) {
@@ -315,9 +314,6 @@ pub fn parse_photo(text: &str) -> Result<crate::config::PhotoConfig, &'static st
     }
     if c.min_views < 2 {
         return Err("min_views must be at least 2");
-    }
-    if !(c.arc_deg > 0.0 && c.arc_deg < 180.0) {
-        return Err("arc must be in (0, 180) degrees");
     }
     Ok(c)
 }

@@ -121,8 +121,14 @@ pub struct PhotoReport {
     pub views: usize,
     /// Iterations (space carving) or layers (voxel colouring).
     pub iterations: usize,
-    /// Plane sweeps (space carving: six per iteration; voxel colouring: 0).
+    /// Voxel colouring: ordinal sweeps run (one per direction); space carving: 0 (it carves from a
+    /// worklist, not by plane sweeps).
     pub sweeps: usize,
+    /// Voxel colouring: each sweep's direction (unit vector, grid frame: the world axes) and the indices
+    /// of the views (in the order they were used) that satisfy the ordinal visibility constraint
+    /// along it. Every view is in at least one sweep unless no direction admits it.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub ordinal_sweeps: Vec<crate::pipeline::OrdinalSweep>,
     /// Voxel visits.
     pub visits: u64,
     /// Voxels carved by photo-consistency (beyond the hull).

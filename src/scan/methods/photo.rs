@@ -1,11 +1,12 @@
 //! The photo-consistency methods' part of a scan or reconstruction: from the visual hull and the
 //! images to a carved, coloured model and its figures (`voxel-coloring`, `space-carving-photo`).
 //!
-//! The visual hull (silhouette carving, done by the caller) is the starting volume. `voxel-coloring`
-//! keeps only the views whose viewing direction from the working volume's centre is within
-//! `arc_deg` of the first view's (the ordinal visibility constraint needs the cameras on one side of
-//! a plane); `space-carving-photo` uses every view. The hull is coloured the same way as the result,
-//! so the two can be compared (ground truth on simulated rigs, photometric re-projection always).
+//! The visual hull (silhouette carving, done by the caller) is the starting volume. Both methods use
+//! every view: `voxel-coloring` runs one sweep per [`ordinal_sweeps`] entry, each with the views
+//! that satisfy the ordinal visibility constraint along its direction (which views those are is in
+//! the report); `space-carving-photo` judges every voxel against every view that sees it. The hull
+//! is coloured the same way as the result, so the two can be compared (ground truth on simulated
+//! rigs, photometric re-projection always).
 
 use std::collections::HashMap;
 
@@ -15,8 +16,8 @@ use crate::config::{Method, PhotoConfig};
 use crate::geometry::VoxelGrid;
 use crate::pipeline::photo_consistency::UNSEEN_COLOUR;
 use crate::pipeline::{
-    carve_photo, color_voxels, colour_surface, measure_noise, reprojection_error, ColouredSurface, Occupancy,
-    PhotoError, PhotoParams, PhotoView, TriangleMesh,
+    carve_photo, color_voxels_sweeps, colour_surface, measure_noise, ordinal_sweeps, reprojection_error,
+    ColouredSurface, Occupancy, PhotoError, PhotoParams, PhotoView, TriangleMesh,
 };
 use crate::scan::report::{PhotoReport, VisualHull};
 
@@ -117,17 +118,6 @@ impl PhotoOutputs {
     }
 }
 
-/// Views for `voxel-coloring`: the first view and those whose viewing direction from the volume's
-/// centre is within `arc_deg` of it.
-pub fn ordinal_subset<'a>(grid: &VoxelGrid, views: &[PhotoView<'a>], arc_deg: f64) -> Vec<PhotoView<'a>> {
-    let b = grid.bbox();
-    let centre = Vector3::from([0, 1, 2].map(|a| 0.5 * (b.min[a] + b.max[a])));
-    let dir = |v: &PhotoView<'_>| (v.camera.centre() - centre).try_normalize(1e-12);
-    let Some(first) = views.first().and_then(dir) else { return views.to_vec() };
-    let cos = arc_deg.to_radians().cos();
-    views.iter().filter(|v| dir(v).is_some_and(|d| d.dot(&first) >= cos - 1e-12)).copied().collect()
-}
-
 /// Mean absolute colour error per channel (0..255) of the seen surface voxels next to the true
 /// surface, against the true colour at their centres.
 fn colour_error(surface: &ColouredSurface, grid: &VoxelGrid, truth: &Truth<'_>) -> Option<f64> {
@@ -166,23 +156,22 @@ pub fn reconstruct_photo(
     truth: Option<&Truth<'_>>,
 ) -> Result<(Occupancy, PhotoOutputs), PhotoError> {
     let grid = *hull.grid();
-    let used: Vec<PhotoView<'_>> =
-        if method == Method::VoxelColoring { ordinal_subset(&grid, views, config.arc_deg) } else { views.to_vec() };
+    let used = views;
     // The threshold: fixed by the configuration, else derived from the measured noise of these
     // views over the hull's surface.
     let (params, noise) = match config.threshold {
         Some(_) => (photo_params(config), None),
         None => {
             let p = photo_params(config);
-            let noise = measure_noise(hull, &used, &p)?;
+            let noise = measure_noise(hull, used, &p)?;
             tracing::info!(threshold = noise.threshold(), image_sigma = noise.image_sigma, "photo threshold measured");
             (p.with_measured_noise(&noise), Some(noise))
         }
     };
     let model = if method == Method::VoxelColoring {
-        color_voxels(hull, &used, &params)?
+        color_voxels_sweeps(hull, used, &params)?
     } else {
-        carve_photo(hull, &used, &params)?
+        carve_photo(hull, used, &params)?
     };
     tracing::info!(
         method = method.name(),
@@ -192,7 +181,7 @@ pub fn reconstruct_photo(
         seconds = model.stats.seconds,
         "photo-consistency done"
     );
-    let hull_surface = colour_surface(hull, &used, &params)?;
+    let hull_surface = colour_surface(hull, used, &params)?;
     let hull_overlap = truth.and_then(|t| hull.iou_and_containment(t.occupancy).ok());
     let visual_hull = VisualHull {
         voxels: hull.count(),
@@ -200,7 +189,7 @@ pub fn reconstruct_photo(
         iou: hull_overlap.map(|o| o.iou),
         containment: hull_overlap.map(|o| o.containment),
         colour_error: truth.and_then(|t| colour_error(&hull_surface, &grid, t)),
-        reprojection_error: Some(reprojection_error(&grid, &hull_surface, &used)),
+        reprojection_error: Some(reprojection_error(&grid, &hull_surface, used)),
     };
     let report = PhotoReport {
         threshold: f64::from(params.threshold),
@@ -209,12 +198,17 @@ pub fn reconstruct_photo(
         views: used.len(),
         iterations: model.stats.iterations,
         sweeps: model.stats.sweeps,
+        ordinal_sweeps: if method == Method::VoxelColoring {
+            ordinal_sweeps(&grid, used, params.min_views)
+        } else {
+            Vec::new()
+        },
         visits: model.stats.visits,
         carved: model.stats.carved,
         seconds: model.stats.seconds,
         surface_voxels: model.surface.voxels.len(),
         seen_surface_voxels: model.surface.seen.iter().filter(|&&s| s).count(),
-        reprojection_error: reprojection_error(&grid, &model.surface, &used),
+        reprojection_error: reprojection_error(&grid, &model.surface, used),
     };
     let colour_error = truth.and_then(|t| colour_error(&model.surface, &grid, t));
     Ok((model.occupancy, PhotoOutputs { grid, surface: model.surface, colour_error, visual_hull, report }))
