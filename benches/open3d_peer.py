@@ -10,7 +10,9 @@ Usage:
 
 DIR is any data set `scanrig reconstruct` reads: a Middlebury `*_par.txt` (the default calibration: the
 one in DIR), a file of 3x4 projection matrices (`name p11 .. p34`, either sign), or a COLMAP text model
-(a directory with cameras.txt and images.txt; pinhole models only, Open3D carves without distortion).
+(a directory with cameras.txt and images.txt; pinhole models only, Open3D carves without distortion), or
+an OpenCV FileStorage file (YAML or XML: one camera without distortion, extrinsic_parameters with a row
+per view, the image names in `images`; read with OpenCV).
 --views defaults to DIR/*_good_silhouette_images.txt when there is one, else every calibrated view;
 --bbox defaults to the Middlebury dino's tight box (give it for any other set). --inputs-only reads and
 prints the inputs without Open3D (a check of the loaders).
@@ -134,11 +136,42 @@ def read_colmap(d):
     return cams
 
 
+def read_opencv(path):
+    """One camera and per-view extrinsics of an OpenCV FileStorage file (YAML or XML), as scanrig's
+    `reconstruct --dataset` reads it: camera_matrix (or cameraMatrix, K), distortion (must be zero:
+    Open3D carves pinhole cameras), extrinsic_parameters (a row per view: Rodrigues vector,
+    translation) and the image names in the `images` sequence."""
+    try:
+        import cv2
+    except ImportError:
+        sys.exit(f"{path}: reading OpenCV FileStorage needs OpenCV: pip install opencv-python-headless")
+    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    node = lambda *names: next((fs.getNode(n) for n in names if not fs.getNode(n).empty()), None)
+    k = node("camera_matrix", "cameraMatrix", "K", "cam_int", "M1")
+    if k is None:
+        sys.exit(f"{path}: no camera_matrix")
+    d = node("distortion_coefficients", "distCoeffs", "dist_coeffs", "D", "cam_dist", "D1")
+    if d is not None and np.any(d.mat() != 0):
+        sys.exit(f"{path}: non-zero lens distortion: Open3D carves pinhole cameras only")
+    ext, images = fs.getNode("extrinsic_parameters"), fs.getNode("images")
+    if ext.empty() or images.empty():
+        sys.exit(f"{path}: needs extrinsic_parameters and an images sequence")
+    names = [images.at(i).string() for i in range(images.size())]
+    rows = ext.mat().reshape(-1, 6)
+    if len(names) != len(rows):
+        sys.exit(f"{path}: {len(names)} image names for {len(rows)} views")
+    # OpenCV's pixel centres are at integer coordinates, as Open3D's.
+    return {n: (k.mat(), cv2.Rodrigues(row[:3])[0], row[3:], "open3d-pixels") for n, row in zip(names, rows)}
+
+
 def read_calibration(path):
     if os.path.isdir(path) or os.path.basename(path) in ("cameras.txt", "images.txt"):
         return read_colmap(path if os.path.isdir(path) else os.path.dirname(path))
     with open(path) as f:
-        first = next((l for l in f if l.strip() and not l.startswith("#")), "")
+        head = f.read(4096)
+    if head.lstrip().startswith("%YAML") or "<opencv_storage" in head:
+        return read_opencv(path)
+    first = next((l for l in head.splitlines() if l.strip() and not l.startswith("#")), "")
     return read_par(path) if len(first.split()) == 1 else read_projections(path)
 
 
