@@ -2,15 +2,18 @@
 """Regenerate the README's performance table from bench output.
 
 Usage (one command, from the repository root):
-    python3 benches/perf_table.py --run          # runs `cargo bench --bench photo --bench methods`,
-                                                 # keeps its output in target/perf-bench.log, rewrites README.md
-    python3 benches/perf_table.py LOG [LOG ...]  # rebuild the table from saved bench output
+    python3 benches/perf_table.py --run          # runs `cargo bench --bench photo --bench methods` and
+                                                 # benches/scan_figures.sh, keeps their output in
+                                                 # target/perf-bench.log and target/scan-figures.txt,
+                                                 # rewrites README.md
+    python3 benches/perf_table.py LOG [LOG ...] [--scans FILE]  # rebuild the table from saved output
 
 Every `PERF {json}` line the benches print becomes one row: method, case, our time (and rate when
 the figure is a throughput), the baseline or peer and its time from the same run, and the ratio.
 The table goes between the README's `<!-- perf-table:begin -->` and `<!-- perf-table:end -->`
-markers, with the machine's core count and load averages before and after the run. Peak memory
-rows come from `--rss FILE` (lines `method | settings | peak RSS MiB`, see the README), if given.
+markers, with the machine's core count and load averages before and after the run. The whole-scan
+rows (peak RSS, seconds after the last frame, total) come from `--scans FILE`, the lines
+`method | settings | MiB | after-last-frame s | total s` that benches/scan_figures.sh prints.
 """
 
 import argparse
@@ -51,7 +54,7 @@ def rows_from(text):
     return rows
 
 
-def table(rows, load_before, load_after, cores, rss):
+def table(rows, load_before, load_after, cores, scans):
     out = [
         f"Measured on {cores} cores; load average (1, 5, 15 min) {load_before} before the run and {load_after} "
         "after it (other builds shared the machine; ratios come from one run, both sides under the same load).",
@@ -66,12 +69,20 @@ def table(rows, load_before, load_after, cores, rss):
         peer = r.get("peer") or "none measured"
         ratio = f"{r['ratio']:.1f}x" if r.get("ratio") else "-"
         out.append(f"| {r['method']} | {r['case']} | {ours} | {peer} | {fmt_time(r.get('peer_s'))} | {ratio} |")
-    if rss:
-        out += ["", "| method | settings | peak RSS |", "|---|---|---|"]
-        for line in rss:
+    if scans:
+        out += [
+            "",
+            "Whole scans through `scanrig scan` on the simulated rigs (`benches/scan_figures.sh`, same run):",
+            "",
+            "| method | settings | peak RSS | after the last frame | whole scan |",
+            "|---|---|---|---|---|",
+        ]
+        for line in scans:
             parts = [p.strip() for p in line.split("|")]
-            if len(parts) == 3:
-                out.append(f"| {parts[0]} | {parts[1]} | {parts[2]} MiB |")
+            if len(parts) == 5:
+                out.append(f"| {parts[0]} | {parts[1]} | {parts[2]} MiB | {parts[3]} s | {parts[4]} s |")
+            elif len(parts) == 3:
+                out.append(f"| {parts[0]} | {parts[1]} | {parts[2]} | - | - |")
     return "\n".join(out)
 
 
@@ -79,7 +90,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("logs", nargs="*")
     ap.add_argument("--run", action="store_true", help="run the benches first")
-    ap.add_argument("--rss", help="file of `method | settings | MiB` lines")
+    ap.add_argument("--scans", help="output of benches/scan_figures.sh")
     ap.add_argument("--readme", default=os.path.join(ROOT, "README.md"))
     a = ap.parse_args()
     before = loadavg()
@@ -89,6 +100,9 @@ def main():
         with open(log, "w") as f:
             subprocess.run(["cargo", "bench", "--bench", "photo", "--bench", "methods"], cwd=ROOT, stdout=f, check=True)
         a.logs.append(log)
+        a.scans = os.path.join(ROOT, "target", "scan-figures.txt")
+        with open(a.scans, "w") as f:
+            subprocess.run([os.path.join(ROOT, "benches", "scan_figures.sh")], cwd=ROOT, stdout=f, check=True)
     for p in a.logs:
         with open(p) as f:
             text += f.read() + "\n"
@@ -98,8 +112,8 @@ def main():
     rows = rows_from(text)
     if not rows:
         sys.exit("no PERF lines in the bench output")
-    rss = open(a.rss).read().splitlines() if a.rss else []
-    body = table(rows, before, loadavg(), os.cpu_count(), rss)
+    scans = open(a.scans).read().splitlines() if a.scans else []
+    body = table(rows, before, loadavg(), os.cpu_count(), scans)
     with open(a.readme) as f:
         readme = f.read()
     if BEGIN not in readme or END not in readme:

@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# Whole scans through the real binary on the simulated rigs, one per method at its shipped settings
+# and, for the voxel methods, at 512^3 (the rig's `resolution = 128` raised to 512 in a temporary
+# copy): peak resident memory (GNU time's "Maximum resident set size", `/usr/bin/time -v`) and, from
+# the scan's report.json, how long the user waits after the last frame (`after_last_frame_s`: the
+# last frame captured -> every result on disk) and the whole scan (`total`). The simulated rig
+# renders frames as fast as it can (no settle or exposure time), so the scan's total is mostly
+# compute; `after_last_frame_s` is the figure a real rig's user waits for.
+# Prints `method | settings | MiB | after-last-frame s | total s` lines for
+# `benches/perf_table.py --scans FILE`. RSS_512= (empty) skips the 512^3 runs.
+#
+# Usage: cargo build --release && benches/scan_figures.sh [RIG ...] > target/scan-figures.txt
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bin=target/release/scanrig
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+rigs=("$@")
+if [ ${#rigs[@]} -eq 0 ]; then
+  rigs=(simulated shadow-carving space-carving-photo voxel-coloring depth-fusion structured-light structured-light-phase laser)
+fi
+measure() { # rig-file label settings
+  local log="$tmp/time.log"
+  if /usr/bin/time -v "$bin" scan --rig "$1" --out "$tmp/out" >/dev/null 2>"$log"; then
+    local kb after total
+    kb=$(sed -n 's/.*Maximum resident set size (kbytes): //p' "$log")
+    read -r after total < <(python3 -c 'import json,sys; t=json.load(open(sys.argv[1]))["timings_s"]; print(t["after_last_frame_s"], t["total"])' "$tmp/out/report.json")
+    printf '%s | %s | %d | %.3f | %.2f\n' "$2" "$3" $((kb / 1024)) "$after" "$total"
+  else
+    echo "$2 | $3 | failed: $(grep -v '^\s' "$log" | tail -1)"
+  fi
+  rm -rf "$tmp/out"
+}
+for r in "${rigs[@]}"; do
+  f="config/rigs/$r.toml"
+  measure "$f" "$r" "shipped ($(grep -m1 -o 'resolution = [0-9]*' "$f" | grep -o '[0-9]*')^3)"
+  if [ -n "${RSS_512-1}" ] && grep -q '^resolution = 128' "$f"; then
+    sed 's/^resolution = 128/resolution = 512/' "$f" > "$tmp/$r-512.toml"
+    measure "$tmp/$r-512.toml" "$r" "512^3"
+  fi
+done
