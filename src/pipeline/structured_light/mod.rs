@@ -34,7 +34,7 @@ pub use coords::{CoordsError, ProjectorCoords};
 pub use decode::{decode, DecodeError, DecodeParams, ProjectorMap, INVALID};
 pub use patterns::{Coding, GrayCodePatterns, PatternError, PatternKind};
 pub use subpixel::interpolate_stripe_edges;
-pub use triangulate::{triangulate, RangeImage, TriangulateError, TriangulationParams};
+pub use triangulate::{RangeImage, TriangulateError, TriangulationParams, Triangulator};
 
 /// Errors of [`save_map_png`].
 #[derive(Debug, thiserror::Error)]

@@ -26,7 +26,7 @@ use rayon::prelude::*;
 use super::coords::ProjectorCoords;
 use crate::geometry::CameraModel;
 
-/// Parameters of [`triangulate`].
+/// Parameters of [`Triangulator::triangulate`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TriangulationParams {
     /// Column+row triangulation: largest distance between the camera and projector rays, metres.
@@ -44,7 +44,7 @@ impl Default for TriangulationParams {
     }
 }
 
-/// Why [`triangulate`] refused its input.
+/// Why [`Triangulator`] refused its input.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum TriangulateError {
     /// The projector coordinates are not the camera's size.
@@ -199,52 +199,92 @@ fn ray_ray(
     ((p1 - p2).norm() <= max_gap).then(|| (p1 + p2) * 0.5)
 }
 
-/// Triangulates `coords` (the projector coordinates seen by `camera`'s pixels) with `projector`,
-/// colours the points from `white` (the fully lit frame, optional), estimates normals from the
-/// range-image neighbours and removes the points without enough neighbours on the same surface.
-/// Uses ray-ray triangulation when `coords` has rows, the column surface otherwise.
-pub fn triangulate(
+/// A camera and projector pair prepared for triangulating many views: the camera's undistorted
+/// unit pixel rays (reference frame, through pixel centres) are computed once here, so that each
+/// view's [`Triangulator::triangulate`] spends no time undistorting camera pixels.
+#[derive(Debug, Clone)]
+pub struct Triangulator {
+    camera: CameraModel,
+    projector: CameraModel,
+    /// Unit camera ray per pixel, row-major, reference frame.
+    rays: Vec<[f64; 3]>,
+}
+
+impl Triangulator {
+    /// Checks both models and precomputes the camera's pixel rays.
+    pub fn new(camera: &CameraModel, projector: &CameraModel) -> Result<Triangulator, TriangulateError> {
+        if !camera.is_finite() {
+            return Err(TriangulateError::Model { which: "camera" });
+        }
+        if !projector.is_finite() {
+            return Err(TriangulateError::Model { which: "projector" });
+        }
+        let w = camera.width as usize;
+        let mut rays = vec![[0.0f64; 3]; w * camera.height as usize];
+        rays.par_chunks_mut(w.max(1)).enumerate().for_each(|(y, row)| {
+            for (x, r) in row.iter_mut().enumerate() {
+                let d = camera.pixel_ray(x as f64 + 0.5, y as f64 + 0.5);
+                *r = [d.x, d.y, d.z];
+            }
+        });
+        Ok(Triangulator { camera: *camera, projector: *projector, rays })
+    }
+
+    /// Triangulates `coords` (the projector coordinates seen by the camera's pixels), colours the
+    /// points from `white` (the fully lit frame, optional), estimates normals from the range-image
+    /// neighbours and removes the points without enough neighbours on the same surface.
+    /// Uses ray-ray triangulation when `coords` has rows, the column surface otherwise.
+    pub fn triangulate(
+        &self,
+        coords: &ProjectorCoords,
+        white: Option<&image::RgbImage>,
+        params: &TriangulationParams,
+    ) -> Result<RangeImage, TriangulateError> {
+        let (camera, projector) = (&self.camera, &self.projector);
+        let (w, h) = (camera.width, camera.height);
+        if coords.width != w as usize || coords.height != h as usize {
+            return Err(TriangulateError::CoordsSize {
+                width: w,
+                height: h,
+                found_width: coords.width,
+                found_height: coords.height,
+            });
+        }
+        if let Some(img) = white {
+            if img.width() != w || img.height() != h {
+                return Err(TriangulateError::ColourSize {
+                    width: w,
+                    height: h,
+                    found_width: img.width(),
+                    found_height: img.height(),
+                });
+            }
+        }
+        triangulate_rays(camera, projector, &self.rays, coords, white, params)
+    }
+}
+
+/// The per-view work of [`Triangulator::triangulate`], sizes already checked.
+fn triangulate_rays(
     camera: &CameraModel,
     projector: &CameraModel,
+    rays: &[[f64; 3]],
     coords: &ProjectorCoords,
     white: Option<&image::RgbImage>,
     params: &TriangulationParams,
 ) -> Result<RangeImage, TriangulateError> {
     let (w, h) = (camera.width, camera.height);
-    if coords.width != w as usize || coords.height != h as usize {
-        return Err(TriangulateError::CoordsSize {
-            width: w,
-            height: h,
-            found_width: coords.width,
-            found_height: coords.height,
-        });
-    }
-    if let Some(img) = white {
-        if img.width() != w || img.height() != h {
-            return Err(TriangulateError::ColourSize {
-                width: w,
-                height: h,
-                found_width: img.width(),
-                found_height: img.height(),
-            });
-        }
-    }
-    if !camera.is_finite() {
-        return Err(TriangulateError::Model { which: "camera" });
-    }
-    if !projector.is_finite() {
-        return Err(TriangulateError::Model { which: "projector" });
-    }
     let n = w as usize * h as usize;
     let o = camera.centre();
     let po = projector.centre();
     let mut points = vec![[f32::NAN; 3]; n];
     let mut depth = vec![0.0f32; n];
-    let decoded = (0..n).filter(|&i| coords.get(i % w as usize, i / w as usize).is_some()).count();
+    let decoded =
+        (0..h as usize).into_par_iter().map(|y| (0..w as usize).filter(|&x| coords.get(x, y).is_some()).count()).sum();
     points.par_chunks_mut(w as usize).zip(depth.par_chunks_mut(w as usize)).enumerate().for_each(|(y, (pr, dr))| {
         for x in 0..w as usize {
             let Some((c, r)) = coords.get(x, y) else { continue };
-            let d = camera.pixel_ray(x as f64 + 0.5, y as f64 + 0.5);
+            let d = Vector3::from(rays[y * w as usize + x]);
             let p = match r {
                 None => ray_column(projector, &o, &d, f64::from(c)),
                 Some(r) => {
@@ -321,6 +361,7 @@ pub fn triangulate(
         })
         .collect();
     let colours: Vec<[u8; 3]> = (0..n)
+        .into_par_iter()
         .map(|i| white.map_or([0; 3], |img| img.as_raw()[3 * i..3 * i + 3].try_into().unwrap_or([0; 3])))
         .collect();
     for (i, k) in keep.iter().enumerate() {
@@ -403,7 +444,10 @@ mod tests {
             for rows in [false, true] {
                 let coords = coords_of(&cam, &proj, rows, plane_hit);
                 let params = TriangulationParams { min_neighbours: 0, ..Default::default() };
-                let r = triangulate(&cam, &proj, &coords, None, &params).expect("triangulate");
+                let r = Triangulator::new(&cam, &proj)
+                    .expect("models")
+                    .triangulate(&coords, None, &params)
+                    .expect("triangulate");
                 assert!(r.valid_count() > 96 * 72 / 2, "k1 {k1} rows {rows}: {} points", r.valid_count());
                 for (p, n, _) in r.valid_points() {
                     assert!((p[1] - 0.01).abs() < 2e-6, "k1 {k1} rows {rows}: point {p:?} off the plane");
@@ -419,7 +463,10 @@ mod tests {
     fn a_sphere_is_recovered_and_its_normals_point_outwards() {
         let (cam, proj) = rig(-0.05);
         let coords = coords_of(&cam, &proj, false, sphere_hit);
-        let r = triangulate(&cam, &proj, &coords, None, &TriangulationParams::default()).expect("triangulate");
+        let r = Triangulator::new(&cam, &proj)
+            .expect("models")
+            .triangulate(&coords, None, &TriangulationParams::default())
+            .expect("triangulate");
         assert!(r.valid_count() > 300, "{} points", r.valid_count());
         let c = Vector3::new(0.0f32, 0.0, 0.03);
         let mut with_normal = 0;
@@ -445,7 +492,10 @@ mod tests {
         // One wild pixel in the middle: 40 projector columns off.
         let mid = 36 * 96 + 48;
         coords.column[mid] += 40.0;
-        let r = triangulate(&cam, &proj, &coords, None, &TriangulationParams::default()).expect("triangulate");
+        let r = Triangulator::new(&cam, &proj)
+            .expect("models")
+            .triangulate(&coords, None, &TriangulationParams::default())
+            .expect("triangulate");
         assert_eq!(r.depth_m[mid], 0.0, "the wild pixel is removed");
         assert!(r.outliers >= 1);
         let worst = r.valid_points().map(|(p, _, _)| (p[1] - 0.01).abs()).fold(0.0f32, f32::max);
@@ -459,11 +509,17 @@ mod tests {
     fn mismatched_sizes_are_errors() {
         let (cam, proj) = rig(0.0);
         let coords = ProjectorCoords { width: 3, height: 3, column: vec![0.0; 9], row: None };
-        let e = triangulate(&cam, &proj, &coords, None, &TriangulationParams::default()).expect_err("size");
+        let e = Triangulator::new(&cam, &proj)
+            .expect("models")
+            .triangulate(&coords, None, &TriangulationParams::default())
+            .expect_err("size");
         assert!(matches!(e, TriangulateError::CoordsSize { found_width: 3, .. }));
         let coords = coords_of(&cam, &proj, false, plane_hit);
         let img = image::RgbImage::new(4, 4);
-        let e = triangulate(&cam, &proj, &coords, Some(&img), &TriangulationParams::default()).expect_err("size");
+        let e = Triangulator::new(&cam, &proj)
+            .expect("models")
+            .triangulate(&coords, Some(&img), &TriangulationParams::default())
+            .expect_err("size");
         assert!(matches!(e, TriangulateError::ColourSize { found_width: 4, .. }));
     }
 }

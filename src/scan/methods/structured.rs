@@ -37,8 +37,8 @@ use crate::pipeline::structured_light::gamma::{calibration_levels, GammaError, R
 use crate::pipeline::structured_light::phase::{PhaseDecodeParams, PhaseShiftPatterns, Unwrapping};
 use crate::pipeline::structured_light::stripe::SweepingStripe;
 use crate::pipeline::structured_light::{
-    decode, interpolate_stripe_edges, triangulate, CodesError, Coding, DecodeError, DecodeParams, GrayCodePatterns,
-    PatternError, PatternSet, ProjectorCoords, ProjectorMap, RangeImage, TriangulateError, TriangulationParams,
+    decode, interpolate_stripe_edges, CodesError, Coding, DecodeError, DecodeParams, GrayCodePatterns, PatternError,
+    PatternSet, ProjectorCoords, ProjectorMap, RangeImage, TriangulateError, TriangulationParams, Triangulator,
 };
 use crate::pipeline::{
     extract_surface, CarveError, CloudError, DepthFusionError, FusionParams, Mask, MeshParams, PointCloud, SpaceCarver,
@@ -712,7 +712,8 @@ impl ScanFlow for StructuredLightFlow {
         // Both models in the object frame at this view's angle: the points come out there.
         let cam = camera.for_turntable_angle(stack.angle_deg);
         let proj = self.projector.for_turntable_angle(stack.angle_deg);
-        let range = triangulate(&cam, &proj, &coords, Some(white), &self.tri)
+        let range = Triangulator::new(&cam, &proj)
+            .and_then(|t| t.triangulate(&coords, Some(white), &self.tri))
             .map_err(|source| sl_err(StructuredLightError::Triangulate { position, source }))?;
         self.summary.triangulate_s += t.elapsed().as_secs_f64();
         self.summary.decoded.push(range.decoded);
