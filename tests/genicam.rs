@@ -58,8 +58,14 @@ struct FakeCamera {
 
 impl FakeCamera {
     fn start(serial: &str) -> Self {
+        Self::start_with(serial, &[])
+    }
+
+    /// As [`FakeCamera::start`], with more arguments for the fake camera.
+    fn start_with(serial: &str, args: &[&str]) -> Self {
         let child = Command::new(FAKE_CAMERA)
             .args(["-i", "127.0.0.1", "-s", serial])
+            .args(args)
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .spawn()
@@ -145,8 +151,11 @@ fn settings_read_back_and_software_triggers_give_one_fresh_frame_each() {
         assert!(f.image.pixels().any(|p| p[0] != f.image.get_pixel(0, 0)[0]), "a real image");
     }
     assert_eq!((camera.triggers(), camera.delivered(), camera.dropped_frames()), (6, 6, 0));
+    // The stream completed the six captures and the frame(s) that showed, right after
+    // AcquisitionStart, that the stream works.
     let stats = camera.statistics();
-    assert_eq!((stats.completed, stats.failures, stats.underruns), (6, 0, 0), "{stats:?}");
+    assert!(camera.primed_frames() >= 1, "the stream was checked with a frame");
+    assert_eq!((stats.completed, stats.failures, stats.underruns), (6 + camera.primed_frames(), 0, 0), "{stats:?}");
 
     // RGB8 and another exposure / gain / rate read back too (a second connection to the camera).
     drop(camera);
@@ -347,7 +356,8 @@ fn a_scan_through_the_binary_captures_one_triggered_frame_per_position() {
     assert!(frames.windows(2).all(|w| w[1].1 == w[0].1 + 1), "consecutive frame ids: {frames:?}");
     assert_eq!(closing_count(&log, "triggers"), 8, "{log}");
     assert_eq!(closing_count(&log, "delivered"), 8, "{log}");
-    assert_eq!(closing_count(&log, "completed"), 8, "{log}");
+    assert_eq!(closing_count(&log, "completed"), 8 + closing_count(&log, "primed"), "{log}");
+    assert!(closing_count(&log, "primed") >= 1, "{log}");
     assert_eq!(closing_count(&log, "dropped") + closing_count(&log, "failures") + closing_count(&log, "underruns"), 0);
     assert!(out.join("report.json").is_file());
 }
@@ -385,6 +395,24 @@ fn killing_the_camera_mid_scan_fails_it_typed_and_keeps_the_frames() {
         .expect("frames dir")
         .filter(|e| e.as_ref().is_ok_and(|e| e.path().extension().is_some_and(|x| x == "png")));
     assert_eq!(pngs.count(), frames.len());
+}
+
+#[test]
+fn a_camera_whose_stream_never_arrives_is_refused_at_connect() {
+    if !private_network("a_camera_whose_stream_never_arrives_is_refused_at_connect") {
+        return;
+    }
+    // The control channel answers, every stream packet is lost (as behind a firewall that drops
+    // the camera's UDP stream): the camera must not pass for connected.
+    let _fake = FakeCamera::start_with("SR0001", &["--gvsp-lost-ratio", "1000"]);
+    let config = camera_config("pixel_format = \"Mono8\"\nfps = 25.0\ntrigger = \"software\"");
+    let started = Instant::now();
+    let e = GenicamCamera::open(&config).expect_err("a camera whose frames never arrive");
+    let text = e.to_string();
+    assert_eq!(e.kind(), ErrorKind::Protocol, "{text}");
+    assert!(text.contains("no complete frame reached this host"), "{text}");
+    assert!(text.contains("0 completed"), "{text}");
+    assert!(started.elapsed() >= Duration::from_secs(3), "gave up before its timeout");
 }
 
 #[test]
@@ -480,7 +508,7 @@ fn the_daemon_fails_a_scan_when_the_camera_vanishes_and_reconnects_it_when_it_re
     // they were, the rest captured now.
     c.post_json(&format!("/api/v1/scans/{id}/resume"), &serde_json::json!({})).expect("resume");
     let meta = daemon_common::wait_finished(&c, &id, Duration::from_secs(30));
-    assert_eq!(meta["status"], "complete", "{meta}");
+    assert_eq!(meta["status"], "complete", "{meta}\n{}", d.log());
     assert_eq!(meta["resumes"], 1, "{meta}");
     let frames = frames_on_disk(&out);
     assert_eq!(frames.len(), 24, "{frames:?}");

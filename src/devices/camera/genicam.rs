@@ -86,6 +86,8 @@ struct Connection {
     held: Option<FilledBuffer>,
     camera: ArvCamera,
     settings: GenicamSettings,
+    /// Complete frames received while checking the stream after `AcquisitionStart`.
+    primed: u64,
 }
 
 impl Drop for Connection {
@@ -138,6 +140,8 @@ pub struct GenicamCamera {
     drained: u64,
     /// Statistics of the streams of earlier connections.
     earlier: StreamStatistics,
+    /// Frames of earlier connections received while checking their streams.
+    primed_earlier: u64,
     reconnects: u64,
     backoff: Duration,
     next_attempt: Option<Instant>,
@@ -299,8 +303,85 @@ fn connect(config: &GenicamCameraConfig) -> Result<Connection, DeviceError> {
     let payload = camera.payload().map_err(|e| arv_error("reading PayloadSize", e))?;
     let stream = camera.create_stream(config.buffers, payload).map_err(|e| arv_error("creating the stream", e))?;
     camera.start().map_err(|e| arv_error("AcquisitionStart", e))?;
-    tracing::info!(settings = ?settings, payload, buffers = config.buffers, "GenICam camera streaming");
-    Ok(Connection { stream, held: None, camera, settings })
+    let primed = prime(&camera, &stream, config.trigger, &settings)?;
+    tracing::info!(
+        settings = ?settings,
+        payload,
+        buffers = config.buffers,
+        prime_tries = primed.tries,
+        "GenICam camera streaming"
+    );
+    Ok(Connection { stream, held: None, camera, settings, primed: primed.frames })
+}
+
+/// What [`prime`] took.
+#[derive(Debug, Clone, Copy)]
+struct Primed {
+    /// Waits for a frame (software triggers sent, with a software trigger).
+    tries: u32,
+    /// Complete frames it received and handed back unread.
+    frames: u64,
+}
+
+/// How long [`prime`] waits for the first complete frame after `AcquisitionStart`.
+const PRIME_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// Wait for one complete frame after `AcquisitionStart`, so that a connected camera is one whose
+/// frames reach this host: a camera that answers its control channel but whose stream packets are
+/// dropped (a firewall, a packet size the network does not carry) is refused here, not on the
+/// first capture of a scan. With a software trigger the trigger is sent again after each frame's
+/// worth of waiting: a camera may ignore a trigger that arrives before its acquisition engine is
+/// running, and Aravis' fake GigE camera loses the frame of a trigger sent within a few
+/// milliseconds of `AcquisitionStart`. With a line trigger nothing can make a frame, so nothing is
+/// checked. The frames seen here are handed back to the stream unread.
+fn prime(
+    camera: &ArvCamera,
+    stream: &ArvStream,
+    trigger: TriggerMode,
+    settings: &GenicamSettings,
+) -> Result<Primed, DeviceError> {
+    if trigger == TriggerMode::Line {
+        return Ok(Primed { tries: 0, frames: 0 });
+    }
+    let period = if settings.fps > 0.0 { 1.0 / settings.fps } else { 0.1 };
+    // One frame's worth of waiting: the exposure, two frame periods and the transfer.
+    let step = Duration::from_secs_f64(settings.exposure_us.max(0.0) / 1e6 + 2.0 * period + 0.1);
+    let deadline = Instant::now() + PRIME_TIMEOUT;
+    let mut tries = 0;
+    while Instant::now() < deadline {
+        tries += 1;
+        if trigger == TriggerMode::Software {
+            camera.execute("TriggerSoftware").map_err(|e| arv_error("TriggerSoftware", e))?;
+        }
+        let wait_until = (Instant::now() + step).min(deadline);
+        while let Some(b) = stream.pop(wait_until.saturating_duration_since(Instant::now())) {
+            let complete = b.status() == BUFFER_STATUS_SUCCESS;
+            stream.push(b);
+            if complete {
+                let mut frames = 1;
+                if tries > 1 {
+                    // An earlier trigger's frame may still be on its way: let it land here, not
+                    // after a capture's drain, where it would pass for a fresh one.
+                    while let Some(late) = stream.pop(step) {
+                        frames += u64::from(late.status() == BUFFER_STATUS_SUCCESS);
+                        stream.push(late);
+                    }
+                }
+                return Ok(Primed { tries, frames });
+            }
+        }
+    }
+    let s = stream.statistics();
+    Err(DeviceError::Protocol {
+        device: NAME.into(),
+        detail: format!(
+            "no complete frame reached this host within {PRIME_TIMEOUT:?} of AcquisitionStart \
+             ({tries} tries; stream: {} completed, {} failed, {} lost for want of a buffer): \
+             is a firewall dropping the camera's UDP stream, or is the packet size larger than \
+             the network carries?",
+            s.completed, s.failures, s.underruns
+        ),
+    })
 }
 
 fn assembler(config: &GenicamCameraConfig, settings: &GenicamSettings) -> FrameAssembler {
@@ -323,6 +404,7 @@ impl GenicamCamera {
             delivered: 0,
             drained: 0,
             earlier: StreamStatistics::default(),
+            primed_earlier: 0,
             reconnects: 0,
             backoff: FIRST_BACKOFF,
             next_attempt: None,
@@ -355,6 +437,13 @@ impl GenicamCamera {
         self.reconnects
     }
 
+    /// Complete frames received, over every connection, while checking that the stream works
+    /// right after `AcquisitionStart` (never delivered; counted in [`Self::statistics`]'
+    /// `completed`).
+    pub fn primed_frames(&self) -> u64 {
+        self.primed_earlier + self.connection.as_ref().map_or(0, |c| c.primed)
+    }
+
     /// Stream statistics summed over every connection: completed buffers, failed ones (missing
     /// packets, timeouts) and underruns (frames lost because every buffer was in use).
     pub fn statistics(&self) -> StreamStatistics {
@@ -372,6 +461,7 @@ impl GenicamCamera {
             self.earlier.completed += s.completed;
             self.earlier.failures += s.failures;
             self.earlier.underruns += s.underruns;
+            self.primed_earlier += c.primed;
             tracing::warn!(error = %why, "GenICam camera lost");
         }
         self.next_attempt = Some(Instant::now() + self.backoff);
@@ -488,6 +578,7 @@ impl Drop for GenicamCamera {
             triggers = self.triggers,
             delivered = self.delivered,
             drained = self.drained,
+            primed = self.primed_frames(),
             dropped = self.frames.dropped(),
             skipped = self.frames.skipped(),
             completed = s.completed,
