@@ -43,7 +43,9 @@ pub use export::ExportError;
 pub use mesh::{extract_surface, keep_main_component, MeshCleanStats, MeshError, MeshParams, TriangleMesh};
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
 pub use photo_consistency::{image_noise_sigma, ItemBuffer, PhotoError, PhotoNoise, PhotoParams, PhotoView};
-pub use shadow_carving::{carve_shadows, ShadowCarveError, ShadowCarveParams, ShadowCarveStats, ShadowView};
+pub use shadow_carving::{
+    carve_shadows, ShadowCarveError, ShadowCarveParams, ShadowCarveStats, ShadowCarver, ShadowView,
+};
 pub use shadows::{detect_shadows, ShadowError, ShadowMaps, ShadowParams};
 pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
 pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};

@@ -29,18 +29,32 @@
 //! specular) are never shadow. What the rule cannot carve is what no camera sees in shadow with a
 //! light that sees it too: with few views or lights the result stays between the hull and the object.
 //!
-//! # Cost
-//! Each candidate voxel (occupied in the hull, centre in a view's shadow) keeps, per view, the voxel
-//! that blocked its camera and light segments and how far along they were free. Voxels are only ever
-//! removed, so a segment free up to a point stays free there: a later sweep only re-checks the
-//! blocker and, if it went, resumes the traversal from it. The work over all sweeps is therefore about
-//! one traversal of each segment, not one per sweep. Candidates are tested in parallel (rayon) against
-//! a snapshot; removals are applied after each view.
+//! # Cost, and carving while the views arrive
+//! [`ShadowCarver`] keeps the estimate as one flat byte per voxel and works on the surface only: a
+//! voxel can pass the camera test only if the first voxel its segment enters, a face neighbour, is
+//! empty (or outside the grid), so only voxels with an empty face neighbour get candidates (voxel,
+//! view) at all; an interior voxel gets its candidates when a neighbour goes. A candidate traces its
+//! camera segment, then its light segment; when one is blocked the candidate waits on the blocking
+//! voxel (a list per voxel) and is re-tested only when that voxel goes, resuming the traversal right
+//! after it (the traversal is replayed arithmetically up to the blocker, so it visits exactly the
+//! voxels of a traversal from the start). Nothing is re-tested that cannot have changed, so the work
+//! is about one traversal of each segment that can matter, with no sweeps over all candidates.
+//! Candidates are tested in parallel (rayon) against the current estimate in rounds; a round's
+//! removals are applied after it, and the candidates they free and the voxels they expose make the
+//! next round.
+//!
+//! Voxels are only ever removed and the test of a voxel only gets easier when others go, so the
+//! carving converges to the same set whatever the order: the largest subset of the start that no
+//! test removes from. That makes it incremental: [`ShadowCarver::add_position`] carves with one
+//! turntable position's views as soon as its frames are in, against the visual hull so far (an
+//! upper bound of the final one), and [`ShadowCarver::restrict`] removes what a newer hull removed.
+//! After the last position the result equals carving the final hull with all views at once
+//! ([`carve_shadows`]). Traversals stay in `f64`, as before, so they visit the same voxels.
 
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
-use super::occupancy::Occupancy;
+use super::occupancy::{Occupancy, BRICK};
 use super::silhouette::Mask;
 use crate::geometry::{CameraModel, VoxelGrid};
 
@@ -58,8 +72,8 @@ pub struct ShadowView<'a> {
 /// Parameters of [`carve_shadows`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ShadowCarveParams {
-    /// Stop after this many sweeps over all views even if voxels still go (a safety bound; the carving
-    /// normally converges much earlier).
+    /// Stop after this many rounds of re-tests within one update even if voxels still go (a safety
+    /// bound; the carving normally converges much earlier), leaving `converged` false.
     pub max_sweeps: u32,
 }
 
@@ -76,11 +90,12 @@ pub struct ShadowCarveStats {
     pub initial: u64,
     /// Voxels removed.
     pub removed: u64,
-    /// Sweeps over all views, the last one removing nothing (unless `max_sweeps` stopped it).
+    /// Rounds of re-tests (candidates tested in parallel, then their removals applied), over all
+    /// updates.
     pub sweeps: u32,
-    /// Whether the last sweep removed nothing.
+    /// Whether every update ran until nothing more could go (no `max_sweeps` stop).
     pub converged: bool,
-    /// (voxel, view) pairs tested: occupied voxels whose centre projects into the view's shadow.
+    /// (voxel, view) pairs tested: surface voxels whose centre projects into the view's shadow.
     pub candidates: u64,
 }
 
@@ -103,6 +118,14 @@ pub enum ShadowCarveError {
         /// Index of the view.
         view: usize,
     },
+    /// A hull given to [`ShadowCarver::restrict`] is on another grid.
+    #[error("the hull's grid ({hull:?} voxels) is not the carver's ({carver:?})")]
+    GridMismatch {
+        /// The hull's voxels along x, y, z.
+        hull: [usize; 3],
+        /// The carver's.
+        carver: [usize; 3],
+    },
     /// The grid is unusable.
     #[error("the voxel grid is unusable: dims {dims:?}, voxel size {voxel_size} m")]
     BadGrid {
@@ -113,121 +136,407 @@ pub enum ShadowCarveError {
     },
 }
 
+/// No voxel, no candidate; as a segment state: known free.
 const NONE: u32 = u32::MAX;
 
-/// Per (candidate voxel, view) state of the two segments.
+/// Voxel states in [`ShadowCarver`]'s flat grid.
+const EMPTY: u8 = 0;
+/// Occupied, every face neighbour occupied: no candidates yet (it cannot see the camera).
+const INTERIOR: u8 = 1;
+/// Occupied with an empty face neighbour (or on the grid's border): its candidates exist.
+const SURFACE: u8 = 2;
+
+/// One (voxel, view) test and how far along its segments it got.
 #[derive(Debug, Clone, Copy)]
 struct Candidate {
     voxel: u32,
-    cam: Segment,
-    light: Segment,
+    view: u32,
+    /// Traversal steps to the voxel blocking the camera segment, or [`NONE`] once it is free.
+    cam: u32,
+    /// Traversal steps to the voxel blocking the light segment.
+    light: u32,
 }
 
-/// How far along a segment is known free, and the voxel that blocked it there.
+/// What testing a candidate found.
 #[derive(Debug, Clone, Copy)]
-struct Segment {
-    free_to: f32,
-    blocker: u32,
+enum Outcome {
+    /// Its voxel went already.
+    Gone,
+    /// Blocked by this voxel; wait until it goes.
+    Blocked(u32),
+    /// Both segments free: the voxel goes.
+    Carve,
 }
 
-impl Segment {
-    const UNTESTED: Segment = Segment { free_to: 0.0, blocker: NONE };
+/// One turntable position: a camera and the views of its lights.
+#[derive(Debug, Clone)]
+struct Station {
+    camera: CameraModel,
+    /// Index of its first view; its lights are the views from there on.
+    first_view: u32,
+    shadows: Vec<Mask>,
+}
+
+/// Shadow carving that takes the views as they arrive (see the module documentation): start from an
+/// upper bound, [`add_position`](ShadowCarver::add_position) per turntable position,
+/// [`restrict`](ShadowCarver::restrict) whenever the upper bound shrinks, and
+/// [`occupancy`](ShadowCarver::occupancy) for the result. Every call leaves the estimate converged
+/// for the views given so far.
+#[derive(Debug, Clone)]
+pub struct ShadowCarver {
+    grid: VoxelGrid,
+    params: ShadowCarveParams,
+    /// Per voxel: [`EMPTY`], [`INTERIOR`] or [`SURFACE`].
+    occ: Vec<u8>,
+    stations: Vec<Station>,
+    /// Per view: camera centre and light, voxel coordinates (voxel (i, j, k) spans [i, i+1) x ...).
+    targets: Vec<([f64; 3], [f64; 3])>,
+    candidates: Vec<Candidate>,
+    /// Per voxel: the first candidate waiting for it to go; `next` chains the rest.
+    waiting: Vec<u32>,
+    next: Vec<u32>,
+    /// The surface voxels (a superset: entries that went are dropped lazily).
+    surface: Vec<u32>,
+    /// A camera lies inside the grid: every occupied voxel may see it, so every one is a candidate.
+    all_candidates: bool,
+    stats: ShadowCarveStats,
+}
+
+impl ShadowCarver {
+    /// Start from the upper bound `hull` (e.g. the visual hull of the views so far).
+    pub fn new(hull: &Occupancy, params: &ShadowCarveParams) -> Result<ShadowCarver, ShadowCarveError> {
+        let grid = *hull.grid();
+        if grid.is_empty() || !(grid.voxel_size.is_finite() && grid.voxel_size > 0.0) || grid.len() >= NONE as usize {
+            return Err(ShadowCarveError::BadGrid { dims: grid.dims, voxel_size: grid.voxel_size });
+        }
+        let mut occ = vec![EMPTY; grid.len()];
+        let mut initial = 0u64;
+        hull.for_each_occupied(|i, j, k| {
+            occ[grid.index(i, j, k)] = INTERIOR;
+            initial += 1;
+        });
+        let mut carver = ShadowCarver {
+            grid,
+            params: *params,
+            occ,
+            stations: Vec::new(),
+            targets: Vec::new(),
+            candidates: Vec::new(),
+            waiting: vec![NONE; grid.len()],
+            next: Vec::new(),
+            surface: Vec::new(),
+            all_candidates: false,
+            stats: ShadowCarveStats { initial, converged: true, ..Default::default() },
+        };
+        // The surface: occupied voxels with an empty or out-of-grid face neighbour.
+        let dims = grid.dims;
+        let occ = &carver.occ;
+        carver.surface = (0..grid.len() as u32)
+            .into_par_iter()
+            .filter(|&v| {
+                occ[v as usize] != EMPTY && face_neighbours(dims, v as usize).any(|n| n.is_none_or(|n| occ[n] == EMPTY))
+            })
+            .collect();
+        for &v in &carver.surface {
+            carver.occ[v as usize] = SURFACE;
+        }
+        Ok(carver)
+    }
+
+    /// The grid.
+    pub fn grid(&self) -> &VoxelGrid {
+        &self.grid
+    }
+
+    /// What happened so far; `removed` counts the voxels the shadows removed (not those
+    /// [`restrict`](ShadowCarver::restrict) removed).
+    pub fn stats(&self) -> ShadowCarveStats {
+        self.stats
+    }
+
+    /// Number of occupied voxels.
+    pub fn count(&self) -> u64 {
+        self.occ.par_iter().filter(|&&o| o != EMPTY).count() as u64
+    }
+
+    /// The current estimate.
+    pub fn occupancy(&self) -> Occupancy {
+        let grid = self.grid;
+        Occupancy::from_index_fn(grid, |i, j, k| self.occ[grid.index(i, j, k)] != EMPTY)
+    }
+
+    /// Carve with one camera position's views: `camera` in the grid's frame, and per light its
+    /// position (grid frame, metres) and shadow mask (camera image size). Returns the voxels removed.
+    pub fn add_position(
+        &mut self,
+        camera: CameraModel,
+        lights: Vec<(Vector3<f64>, Mask)>,
+    ) -> Result<u64, ShadowCarveError> {
+        let first_view = self.targets.len();
+        for (l, (light, shadow)) in lights.iter().enumerate() {
+            let view = first_view + l;
+            if (shadow.width(), shadow.height()) != (camera.width, camera.height) {
+                return Err(ShadowCarveError::MaskSize {
+                    view,
+                    mask: (shadow.width(), shadow.height()),
+                    camera: (camera.width, camera.height),
+                });
+            }
+            if !light.iter().all(|x| x.is_finite()) {
+                return Err(ShadowCarveError::BadLight { view });
+            }
+        }
+        if lights.is_empty() {
+            return Ok(0);
+        }
+        let before = self.stats.removed;
+        let cam = self.to_vox(&camera.centre());
+        for (light, _) in &lights {
+            let light = self.to_vox(light);
+            self.targets.push((cam, light));
+        }
+        let station =
+            Station { camera, first_view: first_view as u32, shadows: lights.into_iter().map(|(_, m)| m).collect() };
+        let inside = (0..3).all(|a| cam[a] >= 0.0 && cam[a] <= self.grid.dims[a] as f64);
+        let mut pending = Vec::new();
+        if inside && !self.all_candidates {
+            // Every occupied voxel may see this camera: all become candidates, for every view.
+            self.all_candidates = true;
+            let occ = &self.occ;
+            let all: Vec<u32> = (0..occ.len() as u32).filter(|&v| occ[v as usize] == INTERIOR).collect();
+            for &v in &all {
+                self.occ[v as usize] = SURFACE;
+            }
+            let (grid, stations) = (&self.grid, &self.stations);
+            let fresh: Vec<Candidate> = all
+                .par_iter()
+                .flat_map_iter(|&v| stations.iter().flat_map(move |s| station_candidates(grid, s, v)))
+                .collect();
+            self.surface.extend_from_slice(&all);
+            pending = self.push_candidates(fresh);
+        }
+        self.stations.push(station);
+        // The surface's candidates for the new views.
+        let occ = &self.occ;
+        self.surface.retain(|&v| occ[v as usize] != EMPTY);
+        let station = self.stations.last().expect("pushed above");
+        let grid = self.grid;
+        let fresh: Vec<Candidate> =
+            self.surface.par_iter().flat_map_iter(|&v| station_candidates(&grid, station, v)).collect();
+        pending.extend(self.push_candidates(fresh));
+        self.settle(pending);
+        Ok(self.stats.removed - before)
+    }
+
+    /// Remove every voxel that `hull` (same grid) does not hold, e.g. after the visual hull took a
+    /// new silhouette, and carve what that frees. Returns the voxels removed by the shadows.
+    pub fn restrict(&mut self, hull: &Occupancy) -> Result<u64, ShadowCarveError> {
+        if hull.grid() != &self.grid {
+            return Err(ShadowCarveError::GridMismatch { hull: hull.grid().dims, carver: self.grid.dims });
+        }
+        let before = self.stats.removed;
+        let dims = self.grid.dims;
+        let bd = hull.brick_dims();
+        let occ = &self.occ;
+        // Brick by brick: a brick the hull holds whole, or that is empty here, costs one test.
+        let gone: Vec<u32> = (0..bd[0] * bd[1] * bd[2])
+            .into_par_iter()
+            .flat_map_iter(|b| {
+                let bc = [b % bd[0], (b / bd[0]) % bd[1], b / (bd[0] * bd[1])];
+                let bits = hull.brick_bits(bc);
+                let o = bc.map(|x| x * BRICK);
+                let mut out = Vec::new();
+                for (z, &word) in bits.iter().enumerate() {
+                    let k = o[2] + z;
+                    if k >= dims[2] {
+                        break;
+                    }
+                    for y in 0..BRICK {
+                        let j = o[1] + y;
+                        if j >= dims[1] {
+                            break;
+                        }
+                        let row = (word >> (8 * y)) as u8;
+                        if row == 0xff {
+                            continue;
+                        }
+                        for x in 0..BRICK.min(dims[0] - o[0]) {
+                            let v = o[0] + x + dims[0] * (j + dims[1] * k);
+                            if row >> x & 1 == 0 && occ[v] != EMPTY {
+                                out.push(v as u32);
+                            }
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
+        for &v in &gone {
+            self.occ[v as usize] = EMPTY;
+        }
+        let pending = self.after_removal(&gone);
+        self.settle(pending);
+        Ok(self.stats.removed - before)
+    }
+
+    fn to_vox(&self, p: &Vector3<f64>) -> [f64; 3] {
+        std::array::from_fn(|a| (p[a] - self.grid.origin[a]) / self.grid.voxel_size)
+    }
+
+    /// Append candidates; returns their ids.
+    fn push_candidates(&mut self, fresh: Vec<Candidate>) -> Vec<u32> {
+        let first = self.candidates.len() as u32;
+        self.stats.candidates += fresh.len() as u64;
+        self.candidates.extend(fresh);
+        self.next.resize(self.candidates.len(), NONE);
+        (first..self.candidates.len() as u32).collect()
+    }
+
+    /// After `gone` were emptied: the candidates that waited on them, and candidates for the voxels
+    /// they exposed.
+    fn after_removal(&mut self, gone: &[u32]) -> Vec<u32> {
+        let mut pending = Vec::new();
+        let mut exposed = Vec::new();
+        let dims = self.grid.dims;
+        for &b in gone {
+            let mut c = std::mem::replace(&mut self.waiting[b as usize], NONE);
+            while c != NONE {
+                pending.push(c);
+                c = self.next[c as usize];
+            }
+            for n in face_neighbours(dims, b as usize).flatten() {
+                if self.occ[n] == INTERIOR {
+                    self.occ[n] = SURFACE;
+                    exposed.push(n as u32);
+                }
+            }
+        }
+        if !exposed.is_empty() {
+            let (grid, stations) = (&self.grid, &self.stations);
+            let fresh: Vec<Candidate> = exposed
+                .par_iter()
+                .flat_map_iter(|&v| stations.iter().flat_map(move |s| station_candidates(grid, s, v)))
+                .collect();
+            self.surface.extend_from_slice(&exposed);
+            pending.extend(self.push_candidates(fresh));
+        }
+        pending
+    }
+
+    /// Test `pending` in rounds until no candidate can go.
+    fn settle(&mut self, mut pending: Vec<u32>) {
+        let mut rounds = 0;
+        let dims = self.grid.dims;
+        while !pending.is_empty() {
+            if rounds == self.params.max_sweeps {
+                self.stats.converged = false;
+                tracing::warn!(rounds, pending = pending.len(), "shadow carving stopped before converging");
+                return;
+            }
+            rounds += 1;
+            self.stats.sweeps += 1;
+            let (occ, targets, candidates) = (&self.occ, &self.targets, &self.candidates);
+            let tested: Vec<(Candidate, Outcome)> = pending
+                .par_iter()
+                .map(|&c| {
+                    let mut cand = candidates[c as usize];
+                    let outcome = test(occ, dims, &targets[cand.view as usize], &mut cand);
+                    (cand, outcome)
+                })
+                .collect();
+            let mut gone = Vec::new();
+            for (&c, (cand, outcome)) in pending.iter().zip(tested) {
+                self.candidates[c as usize] = cand;
+                match outcome {
+                    Outcome::Gone => {}
+                    Outcome::Blocked(b) => {
+                        self.next[c as usize] = self.waiting[b as usize];
+                        self.waiting[b as usize] = c;
+                    }
+                    Outcome::Carve => {
+                        if self.occ[cand.voxel as usize] != EMPTY {
+                            self.occ[cand.voxel as usize] = EMPTY;
+                            gone.push(cand.voxel);
+                        }
+                    }
+                }
+            }
+            self.stats.removed += gone.len() as u64;
+            tracing::trace!(round = rounds, tested = pending.len(), removed = gone.len(), "shadow carving round");
+            pending = self.after_removal(&gone);
+        }
+    }
+}
+
+/// The candidates of voxel `v` under the views of `station`: one per light whose shadow its centre
+/// projects into.
+fn station_candidates<'a>(grid: &VoxelGrid, station: &'a Station, v: u32) -> impl Iterator<Item = Candidate> + 'a {
+    let px = station.camera.pixel_of(&voxel_centre(grid, v as usize));
+    station.shadows.iter().enumerate().filter_map(move |(l, shadow)| {
+        let (u, w) = px?;
+        shadow.get(u, w).then_some(Candidate { voxel: v, view: station.first_view + l as u32, cam: 0, light: 0 })
+    })
+}
+
+/// Test one candidate against `occ`, resuming its segments where they were blocked.
+fn test(occ: &[u8], dims: [usize; 3], &(cam, light): &([f64; 3], [f64; 3]), c: &mut Candidate) -> Outcome {
+    let idx = c.voxel as usize;
+    if occ[idx] == EMPTY {
+        return Outcome::Gone;
+    }
+    let start = index_centre(dims, idx);
+    if c.cam != NONE {
+        match first_occupied(occ, dims, &start, &cam, c.cam) {
+            Some((b, steps)) => {
+                c.cam = steps;
+                return Outcome::Blocked(b as u32);
+            }
+            None => c.cam = NONE,
+        }
+    }
+    match first_occupied(occ, dims, &start, &light, c.light) {
+        Some((b, steps)) => {
+            c.light = steps;
+            Outcome::Blocked(b as u32)
+        }
+        None => Outcome::Carve,
+    }
+}
+
+/// The six face neighbours of voxel `v`; `None` for those outside the grid.
+fn face_neighbours(dims: [usize; 3], v: usize) -> impl Iterator<Item = Option<usize>> {
+    let [nx, ny, nz] = dims;
+    let (i, j, k) = (v % nx, (v / nx) % ny, v / (nx * ny));
+    let plane = nx * ny;
+    [
+        (i > 0).then(|| v - 1),
+        (i + 1 < nx).then(|| v + 1),
+        (j > 0).then(|| v - nx),
+        (j + 1 < ny).then(|| v + nx),
+        (k > 0).then(|| v - plane),
+        (k + 1 < nz).then(|| v + plane),
+    ]
+    .into_iter()
 }
 
 /// Carve the upper bound `hull` with the shadows of `views` until nothing more goes (see the module
-/// documentation). Returns the carved occupancy (same grid) and what happened.
+/// documentation). Returns the carved occupancy (same grid) and what happened. Consecutive views
+/// with the same camera are one position of a [`ShadowCarver`].
 pub fn carve_shadows(
     hull: &Occupancy,
     views: &[ShadowView<'_>],
     params: &ShadowCarveParams,
 ) -> Result<(Occupancy, ShadowCarveStats), ShadowCarveError> {
-    let grid = *hull.grid();
-    if grid.is_empty() || !(grid.voxel_size.is_finite() && grid.voxel_size > 0.0) {
-        return Err(ShadowCarveError::BadGrid { dims: grid.dims, voxel_size: grid.voxel_size });
+    let mut carver = ShadowCarver::new(hull, params)?;
+    let mut first = 0;
+    while first < views.len() {
+        let camera = views[first].camera;
+        let end = views[first..].iter().position(|v| v.camera != camera).map_or(views.len(), |n| first + n);
+        let lights = views[first..end].iter().map(|v| (v.light_m, v.shadow.clone())).collect();
+        carver.add_position(camera, lights)?;
+        first = end;
     }
-    for (view, v) in views.iter().enumerate() {
-        let (cw, ch) = (v.camera.width, v.camera.height);
-        if (v.shadow.width(), v.shadow.height()) != (cw, ch) {
-            return Err(ShadowCarveError::MaskSize {
-                view,
-                mask: (v.shadow.width(), v.shadow.height()),
-                camera: (cw, ch),
-            });
-        }
-        if !v.light_m.iter().all(|x| x.is_finite()) {
-            return Err(ShadowCarveError::BadLight { view });
-        }
-    }
-    let dims = grid.dims;
-    let mut occ = vec![0u8; grid.len()];
-    let mut occupied = Vec::new();
-    hull.for_each_occupied(|i, j, k| {
-        let idx = grid.index(i, j, k);
-        occ[idx] = 1;
-        occupied.push(idx as u32);
-    });
-    let mut stats = ShadowCarveStats { initial: occupied.len() as u64, ..Default::default() };
-
-    // Candidates per view: occupied voxels whose centre projects into the view's shadow. Views that
-    // share a camera (one position under several lights) share the projection of the hull.
-    let mut candidates: Vec<Vec<Candidate>> = Vec::with_capacity(views.len());
-    let mut pixels: Vec<Option<(u32, u32)>> = Vec::new();
-    for (i, v) in views.iter().enumerate() {
-        if i == 0 || views[i - 1].camera != v.camera {
-            pixels = occupied.par_iter().map(|&idx| v.camera.pixel_of(&voxel_centre(&grid, idx as usize))).collect();
-        }
-        candidates.push(
-            occupied
-                .par_iter()
-                .zip(&pixels)
-                .filter(|(_, px)| px.is_some_and(|(u, w)| v.shadow.get(u, w)))
-                .map(|(&voxel, _)| Candidate { voxel, cam: Segment::UNTESTED, light: Segment::UNTESTED })
-                .collect(),
-        );
-    }
-    stats.candidates = candidates.iter().map(|c| c.len() as u64).sum();
-    // Camera centres and lights in voxel coordinates (voxel (i, j, k) spans [i, i+1) x ...).
-    let to_vox = |p: &Vector3<f64>| -> [f64; 3] { std::array::from_fn(|a| (p[a] - grid.origin[a]) / grid.voxel_size) };
-    let targets: Vec<([f64; 3], [f64; 3])> =
-        views.iter().map(|v| (to_vox(&v.camera.centre()), to_vox(&v.light_m))).collect();
-
-    let mut remove = Vec::new();
-    while stats.sweeps < params.max_sweeps {
-        stats.sweeps += 1;
-        let mut removed_in_sweep = 0u64;
-        for (cands, &(cam, light)) in candidates.iter_mut().zip(&targets) {
-            let occ_ref = &occ;
-            remove.clear();
-            remove.par_extend(cands.par_iter_mut().filter_map(|c| {
-                let idx = c.voxel as usize;
-                if occ_ref[idx] == 0 {
-                    return None;
-                }
-                let start = index_centre(dims, idx);
-                if !segment_free(occ_ref, dims, idx, &start, &cam, &mut c.cam) {
-                    return None;
-                }
-                if !segment_free(occ_ref, dims, idx, &start, &light, &mut c.light) {
-                    return None;
-                }
-                Some(c.voxel)
-            }));
-            for &idx in &remove {
-                occ[idx as usize] = 0;
-            }
-            removed_in_sweep += remove.len() as u64;
-            let occ_ref = &occ;
-            cands.retain(|c| occ_ref[c.voxel as usize] != 0);
-        }
-        stats.removed += removed_in_sweep;
-        tracing::debug!(sweep = stats.sweeps, removed = removed_in_sweep, "shadow carving sweep");
-        if removed_in_sweep == 0 {
-            stats.converged = true;
-            break;
-        }
-    }
-    let result = Occupancy::from_index_fn(grid, |i, j, k| occ[grid.index(i, j, k)] != 0);
-    Ok((result, stats))
+    Ok((carver.occupancy(), carver.stats()))
 }
 
 fn voxel_centre(grid: &VoxelGrid, idx: usize) -> Vector3<f64> {
@@ -240,43 +549,16 @@ fn index_centre(dims: [usize; 3], idx: usize) -> [f64; 3] {
     [(idx % nx) as f64 + 0.5, ((idx / nx) % ny) as f64 + 0.5, (idx / (nx * ny)) as f64 + 0.5]
 }
 
-/// Is the segment from `start` (the centre of voxel `own`) to `end` (voxel coordinates) free of
-/// occupied voxels other than `own`? Uses and updates the cached progress `seg`.
-fn segment_free(occ: &[u8], dims: [usize; 3], own: usize, start: &[f64; 3], end: &[f64; 3], seg: &mut Segment) -> bool {
-    if seg.blocker != NONE {
-        if occ[seg.blocker as usize] != 0 {
-            return false;
-        }
-        seg.blocker = NONE;
-    }
-    match first_occupied(occ, dims, own, start, end, seg.free_to as f64) {
-        Some((blocker, t)) => {
-            seg.blocker = blocker as u32;
-            // Resume a little before the blocker's entry so rounding never skips a voxel.
-            seg.free_to = (t - 1e-4).max(0.0) as f32;
-            false
-        }
-        None => {
-            seg.free_to = 1.0;
-            true
-        }
-    }
-}
-
-/// Grid traversal (Amanatides & Woo) of the segment `start + t·(end - start)`, `t` in `[t0, 1]`,
-/// visiting every voxel the segment passes through. Returns the first occupied voxel other than
-/// `own` and the parameter where the segment enters it. Outside the grid everything is empty; the
-/// segment starts inside the grid and, the grid being convex, never re-enters it once it has left.
-fn first_occupied(
-    occ: &[u8],
-    dims: [usize; 3],
-    own: usize,
-    start: &[f64; 3],
-    end: &[f64; 3],
-    t0: f64,
-) -> Option<(usize, f64)> {
+/// Grid traversal (Amanatides & Woo) of the segment `start + t·(end - start)`, `t` in `[0, 1]`,
+/// visiting every voxel the segment passes through; `start` is the centre of the voxel it starts in,
+/// which never blocks. Returns the first occupied voxel after the first `resume` steps (the voxels up
+/// to there are known free, or were the blocker that has gone) and the steps taken to reach it.
+/// Resuming replays the steps arithmetically, so the voxels visited are exactly those of a traversal
+/// from the start. Outside the grid everything is empty; the segment starts inside the grid and, the
+/// grid being convex, never re-enters it once it has left.
+fn first_occupied(occ: &[u8], dims: [usize; 3], start: &[f64; 3], end: &[f64; 3], resume: u32) -> Option<(usize, u32)> {
     let d: [f64; 3] = std::array::from_fn(|a| end[a] - start[a]);
-    let p: [f64; 3] = std::array::from_fn(|a| start[a] + d[a] * t0);
+    let p = *start;
     let mut cell: [i64; 3] = std::array::from_fn(|a| p[a].floor() as i64);
     let mut step = [0i64; 3];
     let mut t_max = [f64::INFINITY; 3];
@@ -284,22 +566,24 @@ fn first_occupied(
     for a in 0..3 {
         if d[a] > 0.0 {
             step[a] = 1;
-            t_max[a] = t0 + ((cell[a] + 1) as f64 - p[a]) / d[a];
+            t_max[a] = ((cell[a] + 1) as f64 - p[a]) / d[a];
             t_delta[a] = 1.0 / d[a];
         } else if d[a] < 0.0 {
             step[a] = -1;
-            t_max[a] = t0 + (cell[a] as f64 - p[a]) / d[a];
+            t_max[a] = (cell[a] as f64 - p[a]) / d[a];
             t_delta[a] = -1.0 / d[a];
         }
     }
-    let mut t = t0;
+    let mut steps = 0u32;
     loop {
-        if (0..3).any(|a| cell[a] < 0 || cell[a] >= dims[a] as i64) {
-            return None;
-        }
-        let idx = cell[0] as usize + dims[0] * (cell[1] as usize + dims[1] * cell[2] as usize);
-        if idx != own && occ[idx] != 0 {
-            return Some((idx, t));
+        if steps > resume {
+            if (0..3).any(|a| cell[a] < 0 || cell[a] >= dims[a] as i64) {
+                return None;
+            }
+            let idx = cell[0] as usize + dims[0] * (cell[1] as usize + dims[1] * cell[2] as usize);
+            if occ[idx] != EMPTY {
+                return Some((idx, steps));
+            }
         }
         let a = if t_max[0] <= t_max[1] && t_max[0] <= t_max[2] {
             0
@@ -308,12 +592,12 @@ fn first_occupied(
         } else {
             2
         };
-        t = t_max[a];
-        if t > 1.0 {
+        if t_max[a] > 1.0 {
             return None;
         }
         cell[a] += step[a];
         t_max[a] += t_delta[a];
+        steps += 1;
     }
 }
 
@@ -354,18 +638,84 @@ mod tests {
         let wall = at(5, 1, 1);
         occ[wall] = 1;
         let start = [1.5, 1.5, 1.5];
-        let hit = first_occupied(&occ, dims, own, &start, &[20.5, 1.5, 1.5], 0.0);
-        assert_eq!(hit.map(|h| h.0), Some(wall));
-        // Entry at x = 5: t = (5 - 1.5) / 19.
-        let t = hit.map_or(0.0, |h| h.1);
-        assert!((t - 3.5 / 19.0).abs() < 1e-12);
-        assert_eq!(first_occupied(&occ, dims, own, &start, &[1.5, 20.5, 1.5], 0.0), None);
+        let hit = first_occupied(&occ, dims, &start, &[20.5, 1.5, 1.5], 0);
+        // Cells x = 2, 3, 4, 5: the wall is four steps along.
+        assert_eq!(hit, Some((wall, 4)));
+        assert_eq!(first_occupied(&occ, dims, &start, &[1.5, 20.5, 1.5], 0), None);
+        // Once the wall has gone, resuming after it finds the next blocker, as a fresh traversal does.
+        let far = at(7, 1, 1);
+        occ[far] = 1;
+        occ[wall] = 0;
+        assert_eq!(first_occupied(&occ, dims, &start, &[20.5, 1.5, 1.5], 4), Some((far, 6)));
+        assert_eq!(first_occupied(&occ, dims, &start, &[20.5, 1.5, 1.5], 0), Some((far, 6)));
         // A diagonal segment passing through the corner-adjacent voxel is blocked by it.
         let mut occ2 = vec![0u8; 512];
         occ2[own] = 1;
         let diag = at(2, 2, 1);
         occ2[diag] = 1;
-        assert_eq!(first_occupied(&occ2, dims, own, &start, &[6.5, 6.5, 1.5], 0.0).map(|h| h.0), Some(diag));
+        assert_eq!(first_occupied(&occ2, dims, &start, &[6.5, 6.5, 1.5], 0).map(|h| h.0), Some(diag));
+    }
+
+    #[test]
+    fn carving_position_by_position_while_the_hull_shrinks_equals_carving_at_the_end() {
+        // A bowl (a sphere with a spherical pit in its top) under a ring of cameras and lights: the
+        // hulls shrink from a loose box to the bowl's own bounding cylinder while positions arrive;
+        // carving as they come and restricting to each newer hull gives the same voxels as carving
+        // the last hull with every view.
+        let g = grid(24);
+        let c = Vector3::new(0.0, 0.0, 0.045);
+        let bowl = |p: Vector3<f64>| (p - c).norm() < 0.035 && (p - Vector3::new(0.0, 0.0, 0.085)).norm() > 0.03;
+        let hulls = [
+            Occupancy::from_fn(g, |p| p.z < 0.09),
+            Occupancy::from_fn(g, |p| p.z < 0.085 && p.x.abs() < 0.04),
+            Occupancy::from_fn(g, |p| p.z < 0.082 && p.xy().norm() < 0.037),
+        ];
+        let positions: Vec<(CameraModel, Vec<Vector3<f64>>)> = (0..6)
+            .map(|i| {
+                let a = i as f64 * std::f64::consts::TAU / 6.0;
+                let cam = camera(Vector3::new(0.3 * a.cos(), 0.3 * a.sin(), 0.3));
+                let lights = (0..2)
+                    .map(|l| {
+                        let b = a + 0.8 + l as f64 * 1.9;
+                        Vector3::new(0.25 * b.cos(), 0.25 * b.sin(), 0.2)
+                    })
+                    .collect();
+                (cam, lights)
+            })
+            .collect();
+        // Shadow: pixels whose ray meets the bowl at a point from which the light is blocked by it.
+        let shadow = |cam: &CameraModel, light: &Vector3<f64>| {
+            let o = cam.centre();
+            Mask::from_fn(160, 120, |u, v| {
+                let d = cam.pixel_ray(u as f64 + 0.5, v as f64 + 0.5).normalize();
+                let Some(t) = (200..600).map(|s| s as f64 * 1e-3).find(|&t| bowl(o + d * t)) else {
+                    return false;
+                };
+                let p = o + d * (t - 1e-3);
+                let to = light - p;
+                (1..200).any(|s| bowl(p + to * (s as f64 / 200.0)))
+            })
+        };
+        let masks: Vec<Vec<Mask>> =
+            positions.iter().map(|(cam, lights)| lights.iter().map(|l| shadow(cam, l)).collect()).collect();
+        let views: Vec<ShadowView<'_>> = positions
+            .iter()
+            .zip(&masks)
+            .flat_map(|((cam, lights), ms)| {
+                lights.iter().zip(ms).map(|(l, m)| ShadowView { camera: *cam, light_m: *l, shadow: m })
+            })
+            .collect();
+        let (at_end, stats) = carve_shadows(&hulls[2], &views, &ShadowCarveParams::default()).expect("valid");
+        assert!(stats.removed > 0, "the test must carve something");
+        let mut carver = ShadowCarver::new(&hulls[0], &ShadowCarveParams::default()).expect("valid");
+        for (i, ((cam, lights), ms)) in positions.iter().zip(&masks).enumerate() {
+            carver.restrict(&hulls[(i / 2).min(2)]).expect("same grid");
+            carver.add_position(*cam, lights.iter().copied().zip(ms.iter().cloned()).collect()).expect("valid");
+        }
+        carver.restrict(&hulls[2]).expect("same grid");
+        let streamed = carver.occupancy();
+        assert_eq!(streamed.first_difference(&at_end), None);
+        assert!(carver.stats().converged);
     }
 
     #[test]

@@ -1,8 +1,11 @@
 //! The flow of method `shadow-carving`: per-light acquisition (an ambient frame and one frame per
 //! shadow light at each position), the visual hull from silhouettes of the brightest composite, shadow
-//! detection per position, then shadow carving of the hull. The report gives the result's and the
-//! hull's overlap with the simulated truth. The light positions are the rig file's (or its
-//! calibration file's) `[[lights.light]]` positions.
+//! detection per position, and shadow carving of the hull, all per position as it arrives: the
+//! carving is restricted to the hull so far and carves with the new position's shadows
+//! ([`ShadowCarver`]), so after the last frame only that position's work and the mesh remain. The
+//! result equals carving the final hull with every position's shadows at the end. The report gives
+//! the result's and the hull's overlap with the simulated truth. The light positions are the rig
+//! file's (or its calibration file's) `[[lights.light]]` positions.
 //!
 //! Frames are stored as `frames/pos_NNN_ambient.png` and `frames/pos_NNN_light_K.png`.
 
@@ -17,8 +20,8 @@ use crate::acquisition::{self, PerLightView};
 use crate::config::{Method, RigConfig, ScanPlan};
 use crate::geometry::{turntable_rotation, CameraModel, VoxelGrid};
 use crate::pipeline::{
-    carve_shadows, detect_shadows, extract_silhouette, extract_surface, Mask, MeshParams, ShadowCarveError,
-    ShadowCarveParams, ShadowError, ShadowParams, ShadowView, SilhouetteParams, SpaceCarver,
+    detect_shadows, extract_silhouette, extract_surface, Mask, MeshParams, ShadowCarveError, ShadowCarveParams,
+    ShadowCarver, ShadowError, ShadowParams, SilhouetteParams, SpaceCarver,
 };
 use crate::scan::flow::{Finish, FrameDir, Outcome, PositionView, ScanFlow, Sequence, ViewRecord};
 use crate::scan::report::{MethodDetails, Timings, VisualHull};
@@ -64,9 +67,9 @@ pub struct ShadowSummary {
     pub light_positions_m: Vec<[f64; 3]>,
     /// Voxels removed from the hull.
     pub removed_voxels: u64,
-    /// Sweeps over all (view, light) pairs.
+    /// Rounds of re-tests while carving, over all positions (`ShadowCarveStats::sweeps`).
     pub sweeps: u32,
-    /// Whether the last sweep removed nothing.
+    /// Whether the carving ran until nothing more could go (no safety bound stopped it).
     pub converged: bool,
     /// Shadow pixels over all positions and lights (after erosion).
     pub shadow_pixels: u64,
@@ -119,8 +122,10 @@ pub struct ShadowFlow {
     smooth_radius: u32,
     carver: SpaceCarver,
     views: Vec<(CameraModel, Mask)>,
-    /// Per (position, light): object-frame camera, object-frame light, shadow mask.
-    shadow_views: Vec<(CameraModel, Vector3<f64>, Mask)>,
+    /// The shadow carving so far (from the first position on).
+    shadow: Option<ShadowCarver>,
+    /// Seconds spent carving with shadows.
+    shadow_s: f64,
     shadow_pixels: u64,
     unknown_pixels: u64,
     detect_s: f64,
@@ -153,7 +158,8 @@ impl ShadowFlow {
             smooth_radius: recon.mesh.smooth_radius,
             carver: SpaceCarver::new(grid).map_err(ScanError::Carve)?,
             views: Vec::with_capacity(plan.positions as usize),
-            shadow_views: Vec::new(),
+            shadow: None,
+            shadow_s: 0.0,
             shadow_pixels: 0,
             unknown_pixels: 0,
             detect_s: 0.0,
@@ -225,9 +231,21 @@ impl ScanFlow for ShadowFlow {
         self.shadow_pixels += shadows;
         self.unknown_pixels += maps.unknown.count() as u64;
         let to_obj = turntable_rotation(-view.angle_deg);
-        for (mask, light) in maps.shadows.into_iter().zip(&self.lights) {
-            self.shadow_views.push((cam, to_obj * light, mask));
-        }
+        let lights = self.lights.iter().map(|light| to_obj * light).zip(maps.shadows).collect();
+        let t = Instant::now();
+        let hull = self.carver.occupancy();
+        let shadow = match &mut self.shadow {
+            Some(shadow) => {
+                shadow.restrict(hull).map_err(|e| ScanError::Shadow(ShadowScanError::Carve(e)))?;
+                shadow
+            }
+            None => self.shadow.insert(
+                ShadowCarver::new(hull, &ShadowCarveParams::default())
+                    .map_err(|e| ScanError::Shadow(ShadowScanError::Carve(e)))?,
+            ),
+        };
+        shadow.add_position(cam, lights).map_err(|e| ScanError::Shadow(ShadowScanError::Carve(e)))?;
+        self.shadow_s += t.elapsed().as_secs_f64();
         self.views.push((cam, silhouette));
         Ok(format!("carved: {} voxels left, {shadows} shadow pixels", stats.occupied))
     }
@@ -242,18 +260,17 @@ impl ScanFlow for ShadowFlow {
         timings.silhouette += self.timings.silhouette;
         timings.carve += self.timings.carve;
         events(ScanEvent::Stage("shadow carving"));
+        // The carving kept up with the positions; what is left is reading out the result.
         let t = Instant::now();
         let hull = self.carver.occupancy();
-        let carving: Vec<ShadowView<'_>> = self
-            .shadow_views
-            .iter()
-            .map(|(camera, light_m, shadow)| ShadowView { camera: *camera, light_m: *light_m, shadow })
-            .collect();
-        let (carved, stats) = carve_shadows(hull, &carving, &ShadowCarveParams::default())
-            .map_err(|e| ScanError::Shadow(ShadowScanError::Carve(e)))?;
-        let carve_s = t.elapsed().as_secs_f64();
+        let (carved, stats) = match &self.shadow {
+            Some(shadow) => (shadow.occupancy(), shadow.stats()),
+            None => (hull.clone(), Default::default()),
+        };
+        let removed = hull.count() - carved.count();
+        let carve_s = self.shadow_s + t.elapsed().as_secs_f64();
         timings.carve += carve_s;
-        tracing::info!(removed = stats.removed, sweeps = stats.sweeps, seconds = carve_s, "shadow carving done");
+        tracing::info!(removed, rounds = stats.sweeps, seconds = carve_s, "shadow carving done");
         events(ScanEvent::Stage("mesh"));
         let t = Instant::now();
         let mesh =
@@ -280,7 +297,7 @@ impl ScanFlow for ShadowFlow {
             details: MethodDetails::ShadowCarving(ShadowSummary {
                 lights: self.plan.shadow_lights.clone(),
                 light_positions_m: self.lights.iter().map(|l| [l.x, l.y, l.z]).collect(),
-                removed_voxels: stats.removed,
+                removed_voxels: removed,
                 sweeps: stats.sweeps,
                 converged: stats.converged,
                 shadow_pixels: self.shadow_pixels,
