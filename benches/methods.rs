@@ -25,7 +25,7 @@ use scanrig::geometry::{Aabb, CameraModel, Intrinsics, Pose, Vector3, VoxelGrid}
 use scanrig::pipeline::laser::{detect_stripe, triangulate_peaks, Plane, StripeParams};
 use scanrig::pipeline::structured_light::phase::{PhaseDecodeParams, PhaseShiftPatterns, Unwrapping};
 use scanrig::pipeline::structured_light::{
-    decode, DecodeParams, GrayCodePatterns, ProjectorCoords, ProjectorMap, TriangulationParams, Triangulator,
+    decode, DecodeParams, GrayCodePatterns, ProjectorMap, RangeImage, TriangulationParams, Triangulator,
 };
 use scanrig::pipeline::{
     carve_shadows, FusionParams, Mask, Occupancy, PointCloud, ShadowCarveParams, ShadowCarver, ShadowView, Tsdf,
@@ -261,6 +261,79 @@ fn lookup(cam: &CameraModel, proj: &CameraModel) -> Vec<Option<usize>> {
         .collect()
 }
 
+/// CPU seconds this process has used so far (user + system, every thread), from `/proc/self/stat`
+/// in clock ticks (10 ms, so only sums over many runs mean much); 0 where unavailable. Unlike wall
+/// time it does not grow while other processes hold the cores.
+fn cpu_s() -> f64 {
+    let ticks = |s: String| -> Option<f64> {
+        let f: Vec<&str> = s.rsplit_once(')')?.1.split_whitespace().collect();
+        Some(f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?)
+    };
+    std::fs::read_to_string("/proc/self/stat").ok().and_then(ticks).map_or(0.0, |t| t / 100.0)
+}
+
+/// Per-run wall and CPU times of the structured-light stages (decode, triangulation, merge):
+/// medians of the wall times and mean CPU time per view.
+#[derive(Default)]
+struct Stages {
+    wall: Vec<[f64; 3]>,
+    cpu: [f64; 3],
+    /// Wall seconds of the triangulator's passes, per run.
+    passes: Vec<[f64; 4]>,
+    last: (Option<Instant>, f64),
+}
+
+impl Stages {
+    fn start(&mut self) {
+        self.last = (Some(Instant::now()), cpu_s());
+    }
+
+    /// Ends stage `k` and starts the next.
+    fn lap(&mut self, k: usize) {
+        let (now, cpu) = (Instant::now(), cpu_s());
+        if k == 0 {
+            self.wall.push([0.0; 3]);
+        }
+        if let (Some(t), Some(w)) = (self.last.0, self.wall.last_mut()) {
+            w[k] = (now - t).as_secs_f64();
+        }
+        self.cpu[k] += cpu - self.last.1;
+        self.last = (Some(now), cpu);
+    }
+
+    fn print(&self, coding: &str) {
+        let median = |k: usize| {
+            let mut v: Vec<f64> = self.wall.iter().map(|s| s[k]).collect();
+            v.sort_by(f64::total_cmp);
+            v.get(v.len() / 2).copied().unwrap_or(0.0) * 1e3
+        };
+        let cpu = |k: usize| self.cpu[k] / self.wall.len().max(1) as f64 * 1e3;
+        let pass = |k: usize| {
+            let mut v: Vec<f64> = self.passes.iter().map(|s| s[k]).collect();
+            v.sort_by(f64::total_cmp);
+            v.get(v.len() / 2).copied().unwrap_or(0.0) * 1e3
+        };
+        println!(
+            "structured light {coding} stages, wall median (CPU mean, all threads) per view: decode {:.1} ms ({:.0}), \
+             triangulate + neighbour test + normals + colours {:.1} ms ({:.0}), merge {:.1} ms ({:.0})",
+            median(0),
+            cpu(0),
+            median(1),
+            cpu(1),
+            median(2),
+            cpu(2)
+        );
+        println!(
+            "structured light {coding} triangulator passes, wall median: points {:.1} ms, neighbour test {:.1} ms, \
+             normals + colours {:.1} ms, clearing outliers {:.1} ms",
+            pass(0),
+            pass(1),
+            pass(2),
+            pass(3)
+        );
+    }
+}
+
 fn structured_light() {
     let (w, h) = (1280u32, 1024u32);
     let (cam, proj) = procam(w, h);
@@ -269,8 +342,10 @@ fn structured_light() {
         map.iter().map(|m| m.map_or(10, |i| (30 + u32::from(pattern[i]) * 180 / 255) as u8)).collect()
     };
     let tri = TriangulationParams::default();
-    // The camera's rays are computed once per camera and projector pair, outside the timing.
-    let triangulator = Triangulator::new(&cam, &proj).expect("models");
+    // The camera's rays are computed once per camera and projector pair, outside the timing; the
+    // range image's buffers are reused from view to view, as a scan does.
+    let mut triangulator = Triangulator::new(&cam, &proj).expect("models");
+    let mut range = RangeImage::default();
     // Gray code.
     let gray = GrayCodePatterns::new(proj.width, proj.height).expect("projector");
     let images: Vec<Vec<u8>> = (0..gray.count()).map(|i| capture(&gray.render(i).expect("in range"))).collect();
@@ -279,15 +354,21 @@ fn structured_light() {
     let mut pm = ProjectorMap::new();
     let mut merged = PointCloud::new();
     let mut points = 0;
+    let mut stages = Stages::default();
     let ours = median_s(7, || {
+        stages.start();
         decode(&gray, &imgs, w as usize, h as usize, &prm, &mut pm).expect("decodes");
-        let coords = ProjectorCoords::from_map(&pm, true);
-        let range = triangulator.triangulate(&coords, None, &tri).expect("triangulates");
+        stages.lap(0);
+        triangulator.triangulate_map_into(&pm, true, None, &tri, &mut range).expect("triangulates");
+        stages.lap(1);
+        stages.passes.push(triangulator.last_pass_seconds());
         let cloud = PointCloud::from_points(range.valid_points().map(|p| p.0).collect());
         points = cloud.len();
         merged = PointCloud::new();
         merged.extend(cloud);
+        stages.lap(2);
     });
+    stages.print("Gray code");
     println!(
         "structured light Gray code {w}x{h} ({} images): decode + triangulate + merge {:.1} ms ({:.1} clouds/s), {points} points",
         gray.count(),
@@ -333,14 +414,21 @@ fn structured_light() {
     let images: Vec<Vec<u8>> = (0..phase.count()).map(|i| capture(&phase.render(i, None).expect("in range"))).collect();
     let imgs: Vec<&[u8]> = images.iter().map(Vec::as_slice).collect();
     let prm = PhaseDecodeParams::default();
+    let mut stages = Stages::default();
     let ours = median_s(7, || {
+        stages.start();
         let coords = phase.decode(&imgs, w as usize, h as usize, &prm).expect("decodes");
-        let range = triangulator.triangulate(&coords, None, &tri).expect("triangulates");
+        stages.lap(0);
+        triangulator.triangulate_into(&coords, None, &tri, &mut range).expect("triangulates");
+        stages.lap(1);
+        stages.passes.push(triangulator.last_pass_seconds());
         let cloud = PointCloud::from_points(range.valid_points().map(|p| p.0).collect());
         points = cloud.len();
         merged = PointCloud::new();
         merged.extend(cloud);
+        stages.lap(2);
     });
+    stages.print("4-step phase");
     println!(
         "structured light 4-step phase {w}x{h} ({} images): decode + triangulate + merge {:.1} ms ({:.1} clouds/s), {points} points",
         phase.count(),

@@ -278,7 +278,7 @@ pub fn run_triangulate(req: &TriangulateRequest) -> Result<TriangulateReport, Pr
     })?;
     let white = image::DynamicImage::ImageLuma8(white_grey).to_rgb8();
     let range = Triangulator::new(&camera, &projector)
-        .and_then(|t| t.triangulate(&coords, Some(&white), &params))
+        .and_then(|mut t| t.triangulate(&coords, Some(&white), &params))
         .map_err(|e| ProcamFileError::ReadFile { path: req.procam.clone(), reason: format!("triangulation: {e}") })?;
     let (pts, colours): (Vec<[f32; 3]>, Vec<[u8; 3]>) = range.valid_points().map(|(p, _, c)| (p, c)).unzip();
     write_ply_points(&req.out, &pts, Some(&colours))?;

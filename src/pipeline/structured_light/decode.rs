@@ -86,6 +86,13 @@ impl ProjectorMap {
         Self::default()
     }
 
+    /// A map from its buffers (tests build maps without decoding images).
+    #[cfg(test)]
+    pub(crate) fn from_parts(width: usize, height: usize, column: Vec<u16>, row: Vec<u16>) -> Self {
+        assert!(column.len() == width * height && row.len() == width * height);
+        Self { width, height, column, row }
+    }
+
     /// Camera width, pixels.
     pub fn width(&self) -> usize {
         self.width

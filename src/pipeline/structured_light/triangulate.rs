@@ -24,6 +24,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::coords::ProjectorCoords;
+use super::decode::{ProjectorMap, INVALID};
 use crate::geometry::CameraModel;
 
 /// Parameters of [`Triangulator::triangulate`].
@@ -199,15 +200,146 @@ fn ray_ray(
     ((p1 - p2).norm() <= max_gap).then(|| (p1 + p2) * 0.5)
 }
 
-/// A camera and projector pair prepared for triangulating many views: the camera's undistorted
-/// unit pixel rays (reference frame, through pixel centres) are computed once here, so that each
-/// view's [`Triangulator::triangulate`] spends no time undistorting camera pixels.
+/// A camera and projector pair prepared for triangulating many views.
+///
+/// Built once per pair: the camera's undistorted pixel rays (reference frame, through pixel
+/// centres, `f32`, scaled so that their camera-frame `z` is 1: a point's distance along its ray is
+/// its depth) and the projector's plane and ray coefficients, so that each view costs a few
+/// multiply-adds and one division per pixel. The per-view buffers are reused: the outlier-test
+/// mask lives here and [`Triangulator::triangulate_into`] writes into a caller's [`RangeImage`],
+/// so that a stream of views allocates nothing once the first is done.
+///
+/// Work per view, each pass parallel over camera rows (rayon) and reading only the rows it needs:
+/// 1. triangulate every decoded pixel (point and depth), counting decoded and triangulated pixels;
+/// 2. the neighbour test on the 8-neighbourhood in the image grid (depths only), into a byte mask;
+/// 3. normals from the kept image-grid neighbours, and colours;
+/// 4. the points and depths of removed pixels cleared.
 #[derive(Debug, Clone)]
 pub struct Triangulator {
     camera: CameraModel,
     projector: CameraModel,
-    /// Unit camera ray per pixel, row-major, reference frame.
-    rays: Vec<[f64; 3]>,
+    /// Per pixel, row-major: the camera ray at unit camera depth, reference frame.
+    rays: Vec<[f32; 3]>,
+    /// Per pixel: 1 where the point passed the neighbour test (scratch, reused across views).
+    keep: Vec<u8>,
+    /// Wall seconds of the last view's four passes.
+    pass_s: [f64; 4],
+}
+
+/// Where a pixel's projector coordinates come from: continuous coordinates, or the integer codes of
+/// a Gray/binary [`ProjectorMap`] taken at their centres (`i + 0.5`, as
+/// [`ProjectorCoords::from_map`] gives them) without building the coordinates.
+#[derive(Clone, Copy)]
+enum Source<'a> {
+    Coords(&'a ProjectorCoords),
+    Map { map: &'a ProjectorMap, rows: bool },
+}
+
+impl Source<'_> {
+    fn has_rows(&self) -> bool {
+        match self {
+            Source::Coords(c) => c.row.is_some(),
+            Source::Map { rows, .. } => *rows,
+        }
+    }
+
+    /// Column and row (`NaN` row without rows) of pixel `i`, or `None` when it has none.
+    #[inline(always)]
+    fn at(&self, i: usize) -> Option<(f32, f32)> {
+        match self {
+            Source::Coords(c) => {
+                let col = c.column[i];
+                let row = c.row.as_ref().map_or(f32::NAN, |r| r[i]);
+                (col.is_finite() && (c.row.is_none() || row.is_finite())).then_some((col, row))
+            }
+            Source::Map { map, rows } => {
+                let col = map.columns()[i];
+                let row = map.rows().get(i).copied().unwrap_or(INVALID);
+                let centre = |v: u16| f32::from(v) + 0.5;
+                (col != INVALID && (!rows || row != INVALID))
+                    .then(|| (centre(col), if *rows { centre(row) } else { f32::NAN }))
+            }
+        }
+    }
+}
+
+/// The per-view constants of pass 1, `f64`.
+struct Geometry<'a> {
+    projector: &'a CameraModel,
+    /// Camera centre.
+    o: Vector3<f64>,
+    /// Camera optical axis (row 2 of its rotation): depth of `p` is `axis · (p - o)`.
+    axis: Vector3<f64>,
+    /// Projector centre.
+    po: Vector3<f64>,
+    /// Projector rotation rows: `x_proj = R p + t`.
+    pr: [Vector3<f64>; 3],
+    pt: Vector3<f64>,
+    /// The projector has neither distortion nor skew (the column surface is a plane).
+    plane: bool,
+    /// The projector has no distortion (its pixel rays are linear in the pixel).
+    linear: bool,
+    max_gap: f64,
+}
+
+impl Geometry<'_> {
+    /// The point of camera ray `o + s d` (`d` at unit depth) lit by projector column `c` (and row
+    /// `r` when finite), with its depth.
+    #[inline(always)]
+    fn point(&self, d: Vector3<f64>, c: f64, r: f64) -> Option<(Vector3<f64>, f64)> {
+        let (o, k) = (&self.o, &self.projector.intrinsics);
+        let p = if r.is_nan() {
+            if self.plane {
+                // Column plane `n · x + off = 0` with `n = R^T (1, 0, -xn)`, `off = t_x - xn t_z`.
+                let xn = (c - k.cx) / k.fx;
+                let n = self.pr[0] - self.pr[2] * xn;
+                let den = n.dot(&d);
+                if den.abs() < 1e-12 {
+                    return None;
+                }
+                let s = -(n.dot(o) + self.pt.x - xn * self.pt.z) / den;
+                if !(s.is_finite() && s > 0.0) {
+                    return None;
+                }
+                let p = o + d * s;
+                // In front of the projector.
+                if self.pr[2].dot(&p) + self.pt.z <= 0.0 {
+                    return None;
+                }
+                p
+            } else {
+                ray_column(self.projector, o, &d.normalize(), c)?
+            }
+        } else if self.linear {
+            // The projector ray through (c, r): R^T (xn, yn, 1), not normalised; closest points of
+            // two rays with any positive scales.
+            let yn = (r - k.cy) / k.fy;
+            let xn = (c - k.cx - k.skew * yn) / k.fx;
+            let pd = self.pr[2] + self.pr[0] * xn + self.pr[1] * yn;
+            let w = o - self.po;
+            let (a, b, cc) = (d.dot(&d), d.dot(&pd), pd.dot(&pd));
+            let (dd, e) = (d.dot(&w), pd.dot(&w));
+            let den = a * cc - b * b;
+            if den < 1e-12 * a * cc {
+                return None;
+            }
+            let s = (b * e - cc * dd) / den;
+            let t = (a * e - b * dd) / den;
+            if s <= 0.0 || t <= 0.0 {
+                return None;
+            }
+            let (p1, p2) = (o + d * s, self.po + pd * t);
+            if (p1 - p2).norm_squared() > self.max_gap * self.max_gap {
+                return None;
+            }
+            (p1 + p2) * 0.5
+        } else {
+            let pd = self.projector.pixel_ray(c, r);
+            ray_ray(o, &d.normalize(), &self.po, &pd, self.max_gap)?
+        };
+        let z = self.axis.dot(&(p - o));
+        (z > 0.0 && p.iter().all(|v| v.is_finite())).then_some((p, z))
+    }
 }
 
 impl Triangulator {
@@ -220,14 +352,16 @@ impl Triangulator {
             return Err(TriangulateError::Model { which: "projector" });
         }
         let w = camera.width as usize;
-        let mut rays = vec![[0.0f64; 3]; w * camera.height as usize];
+        let mut rays = vec![[0.0f32; 3]; w * camera.height as usize];
+        let rt = camera.pose.rotation.transpose();
         rays.par_chunks_mut(w.max(1)).enumerate().for_each(|(y, row)| {
             for (x, r) in row.iter_mut().enumerate() {
-                let d = camera.pixel_ray(x as f64 + 0.5, y as f64 + 0.5);
-                *r = [d.x, d.y, d.z];
+                let (xn, yn) = camera.intrinsics.pixel_to_normalised(x as f64 + 0.5, y as f64 + 0.5);
+                let d = rt * Vector3::new(xn, yn, 1.0);
+                *r = [d.x as f32, d.y as f32, d.z as f32];
             }
         });
-        Ok(Triangulator { camera: *camera, projector: *projector, rays })
+        Ok(Triangulator { camera: *camera, projector: *projector, rays, keep: Vec::new(), pass_s: [0.0; 4] })
     }
 
     /// Triangulates `coords` (the projector coordinates seen by the camera's pixels), colours the
@@ -235,20 +369,56 @@ impl Triangulator {
     /// neighbours and removes the points without enough neighbours on the same surface.
     /// Uses ray-ray triangulation when `coords` has rows, the column surface otherwise.
     pub fn triangulate(
-        &self,
+        &mut self,
         coords: &ProjectorCoords,
         white: Option<&image::RgbImage>,
         params: &TriangulationParams,
     ) -> Result<RangeImage, TriangulateError> {
-        let (camera, projector) = (&self.camera, &self.projector);
-        let (w, h) = (camera.width, camera.height);
-        if coords.width != w as usize || coords.height != h as usize {
-            return Err(TriangulateError::CoordsSize {
-                width: w,
-                height: h,
-                found_width: coords.width,
-                found_height: coords.height,
-            });
+        let mut out = RangeImage::default();
+        self.triangulate_into(coords, white, params, &mut out)?;
+        Ok(out)
+    }
+
+    /// [`Triangulator::triangulate`] into `out`, reusing its buffers (a view of the same camera
+    /// allocates nothing).
+    pub fn triangulate_into(
+        &mut self,
+        coords: &ProjectorCoords,
+        white: Option<&image::RgbImage>,
+        params: &TriangulationParams,
+        out: &mut RangeImage,
+    ) -> Result<(), TriangulateError> {
+        self.check(coords.width, coords.height, white)?;
+        self.run(Source::Coords(coords), white, params, out);
+        Ok(())
+    }
+
+    /// Triangulates a decoded Gray/binary map at its code centres, as
+    /// `triangulate_into(&ProjectorCoords::from_map(map, rows), ..)` does, without building the
+    /// coordinates: decode output goes straight into points.
+    pub fn triangulate_map_into(
+        &mut self,
+        map: &ProjectorMap,
+        rows: bool,
+        white: Option<&image::RgbImage>,
+        params: &TriangulationParams,
+        out: &mut RangeImage,
+    ) -> Result<(), TriangulateError> {
+        self.check(map.width(), map.height(), white)?;
+        self.run(Source::Map { map, rows }, white, params, out);
+        Ok(())
+    }
+
+    /// Wall seconds of the last view's passes: triangulation, neighbour test, normals and colours,
+    /// clearing the removed points (for benchmarks and logs).
+    pub fn last_pass_seconds(&self) -> [f64; 4] {
+        self.pass_s
+    }
+
+    fn check(&self, width: usize, height: usize, white: Option<&image::RgbImage>) -> Result<(), TriangulateError> {
+        let (w, h) = (self.camera.width, self.camera.height);
+        if width != w as usize || height != h as usize {
+            return Err(TriangulateError::CoordsSize { width: w, height: h, found_width: width, found_height: height });
         }
         if let Some(img) = white {
             if img.width() != w || img.height() != h {
@@ -260,117 +430,225 @@ impl Triangulator {
                 });
             }
         }
-        triangulate_rays(camera, projector, &self.rays, coords, white, params)
+        Ok(())
+    }
+
+    /// The per-view work, sizes already checked.
+    fn run(
+        &mut self,
+        src: Source<'_>,
+        white: Option<&image::RgbImage>,
+        params: &TriangulationParams,
+        out: &mut RangeImage,
+    ) {
+        let (camera, projector) = (&self.camera, &self.projector);
+        let w = camera.width as usize;
+        let n = w * camera.height as usize;
+        out.width = camera.width;
+        out.height = camera.height;
+        for v in [&mut out.points, &mut out.normals] {
+            v.resize(n, [0.0; 3]);
+        }
+        out.depth_m.resize(n, 0.0);
+        out.colours.resize(n, [0; 3]);
+        self.keep.resize(n, 0);
+        if n == 0 {
+            (out.decoded, out.triangulated, out.outliers) = (0, 0, 0);
+            return;
+        }
+        let k = &projector.intrinsics;
+        let linear = !k.has_distortion();
+        let r = &projector.pose.rotation;
+        let geo = Geometry {
+            projector,
+            o: camera.centre(),
+            axis: camera.pose.rotation.row(2).transpose(),
+            po: projector.centre(),
+            pr: [r.row(0).transpose(), r.row(1).transpose(), r.row(2).transpose()],
+            pt: projector.pose.translation,
+            plane: linear && k.skew == 0.0,
+            linear,
+            max_gap: params.max_ray_gap_m,
+        };
+        let rows = src.has_rows();
+        let mut lap = {
+            let mut t = std::time::Instant::now();
+            move || {
+                let now = std::time::Instant::now();
+                let s = (now - t).as_secs_f64();
+                t = now;
+                s
+            }
+        };
+        let (decoded, triangulated) = triangulate_pass(&geo, &self.rays, src, rows, w, out);
+        self.pass_s[0] = lap();
+        let kept = neighbour_pass(&out.depth_m, w, params, &mut self.keep);
+        self.pass_s[1] = lap();
+        normal_pass(
+            &geo.o,
+            &out.points,
+            &out.depth_m,
+            &self.keep,
+            w,
+            params,
+            white,
+            &mut out.normals,
+            &mut out.colours,
+        );
+        self.pass_s[2] = lap();
+        clear_pass(&self.keep, w, &mut out.points, &mut out.depth_m);
+        self.pass_s[3] = lap();
+        (out.decoded, out.triangulated, out.outliers) = (decoded, triangulated, triangulated - kept);
     }
 }
 
-/// The per-view work of [`Triangulator::triangulate`], sizes already checked.
-fn triangulate_rays(
-    camera: &CameraModel,
-    projector: &CameraModel,
-    rays: &[[f64; 3]],
-    coords: &ProjectorCoords,
-    white: Option<&image::RgbImage>,
-    params: &TriangulationParams,
-) -> Result<RangeImage, TriangulateError> {
-    let (w, h) = (camera.width, camera.height);
-    let n = w as usize * h as usize;
-    let o = camera.centre();
-    let po = projector.centre();
-    let mut points = vec![[f32::NAN; 3]; n];
-    let mut depth = vec![0.0f32; n];
-    let decoded =
-        (0..h as usize).into_par_iter().map(|y| (0..w as usize).filter(|&x| coords.get(x, y).is_some()).count()).sum();
-    points.par_chunks_mut(w as usize).zip(depth.par_chunks_mut(w as usize)).enumerate().for_each(|(y, (pr, dr))| {
-        for x in 0..w as usize {
-            let Some((c, r)) = coords.get(x, y) else { continue };
-            let d = Vector3::from(rays[y * w as usize + x]);
-            let p = match r {
-                None => ray_column(projector, &o, &d, f64::from(c)),
-                Some(r) => {
-                    let pd = projector.pixel_ray(f64::from(c), f64::from(r));
-                    ray_ray(&o, &d, &po, &pd, params.max_ray_gap_m)
-                }
-            };
-            if let Some(p) = p {
-                let z = camera.pose.apply(&p).z;
-                if z > 0.0 && p.iter().all(|v| v.is_finite()) {
-                    pr[x] = [p.x as f32, p.y as f32, p.z as f32];
-                    dr[x] = z as f32;
+/// Pass 1: point and depth per pixel (`NaN` and 0 where none); returns (decoded, triangulated).
+#[inline(never)]
+fn triangulate_pass(
+    geo: &Geometry<'_>,
+    rays: &[[f32; 3]],
+    src: Source<'_>,
+    rows: bool,
+    w: usize,
+    out: &mut RangeImage,
+) -> (usize, usize) {
+    out.points
+        .par_chunks_mut(w)
+        .zip(out.depth_m.par_chunks_mut(w))
+        .enumerate()
+        .map(|(y, (pr, dr))| {
+            let (mut decoded, mut triangulated) = (0, 0);
+            let base = y * w;
+            for (x, (p, z)) in pr.iter_mut().zip(dr.iter_mut()).enumerate() {
+                *p = [f32::NAN; 3];
+                *z = 0.0;
+                let Some((c, r)) = src.at(base + x) else { continue };
+                decoded += 1;
+                let d = rays[base + x];
+                let d = Vector3::new(f64::from(d[0]), f64::from(d[1]), f64::from(d[2]));
+                let r = if rows { f64::from(r) } else { f64::NAN };
+                if let Some((q, depth)) = geo.point(d, f64::from(c), r) {
+                    *p = [q.x as f32, q.y as f32, q.z as f32];
+                    *z = depth as f32;
+                    triangulated += 1;
                 }
             }
-        }
-    });
-    let triangulated = depth.iter().filter(|&&d| d > 0.0).count();
-
-    // Outlier test and normals, from the 8-neighbourhood in the range image.
-    let (wi, hi) = (w as i64, h as i64);
-    let tol = params.neighbour_tolerance_m as f32;
-    let at = |x: i64, y: i64| -> Option<usize> {
-        (x >= 0 && y >= 0 && x < wi && y < hi).then(|| (y * wi + x) as usize).filter(|&i| depth[i] > 0.0)
-    };
-    let keep: Vec<bool> = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            if depth[i] <= 0.0 {
-                return false;
-            }
-            let (x, y) = ((i % w as usize) as i64, (i / w as usize) as i64);
-            let mut near = 0u8;
-            for (dx, dy) in [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)] {
-                if let Some(j) = at(x + dx, y + dy) {
-                    near += u8::from((depth[j] - depth[i]).abs() <= tol);
-                }
-            }
-            near >= params.min_neighbours
+            (decoded, triangulated)
         })
-        .collect();
-    let outliers = triangulated - keep.iter().filter(|&&k| k).count();
-    let kept = |x: i64, y: i64| at(x, y).filter(|&j| keep[j]);
-    let normals: Vec<[f32; 3]> = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            if !keep[i] {
-                return [0.0; 3];
+        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+}
+
+/// Pass 2: `keep[i] = 1` where pixel `i` has a point and at least `min_neighbours` of its 8
+/// image-grid neighbours have points within `neighbour_tolerance_m` in depth; returns the kept count.
+#[inline(never)]
+fn neighbour_pass(depth: &[f32], w: usize, params: &TriangulationParams, keep: &mut [u8]) -> usize {
+    let tol = params.neighbour_tolerance_m as f32;
+    let h = depth.len() / w;
+    keep.par_chunks_mut(w)
+        .enumerate()
+        .map(|(y, kr)| {
+            let cur = &depth[y * w..(y + 1) * w];
+            let up = (y > 0).then(|| &depth[(y - 1) * w..y * w]);
+            let down = (y + 1 < h).then(|| &depth[(y + 1) * w..(y + 2) * w]);
+            let mut kept = 0;
+            for (x, k) in kr.iter_mut().enumerate() {
+                let d0 = cur[x];
+                if d0 <= 0.0 {
+                    *k = 0;
+                    continue;
+                }
+                let close = |v: f32| u8::from(v > 0.0 && (v - d0).abs() <= tol);
+                let (l, r) = (x.checked_sub(1), (x + 1 < w).then_some(x + 1));
+                let mut near = 0u8;
+                for (row, centre) in [(up, true), (Some(cur), false), (down, true)] {
+                    let Some(row) = row else { continue };
+                    near += l.map_or(0, |l| close(row[l])) + r.map_or(0, |r| close(row[r]));
+                    if centre {
+                        near += close(row[x]);
+                    }
+                }
+                let ok = near >= params.min_neighbours;
+                *k = u8::from(ok);
+                kept += usize::from(ok);
             }
-            let (x, y) = ((i % w as usize) as i64, (i / w as usize) as i64);
-            let p = |j: usize| Vector3::new(points[j][0], points[j][1], points[j][2]);
-            let close = |j: usize| (depth[j] - depth[i]).abs() <= tol;
-            // Central differences where both neighbours are on the surface, else one-sided.
-            let diff = |a: Option<usize>, b: Option<usize>| match (a.filter(|&j| close(j)), b.filter(|&j| close(j))) {
+            kept
+        })
+        .sum()
+}
+
+/// Pass 3: unit normals (facing the camera centre `o`) from the kept image-grid neighbours on the
+/// same surface, central differences where both are, one-sided otherwise (zero where neither); and
+/// colours from `white` (black without it).
+#[inline(never)]
+#[allow(clippy::too_many_arguments)]
+fn normal_pass(
+    o: &Vector3<f64>,
+    points: &[[f32; 3]],
+    depth: &[f32],
+    keep: &[u8],
+    w: usize,
+    params: &TriangulationParams,
+    white: Option<&image::RgbImage>,
+    normals: &mut [[f32; 3]],
+    colours: &mut [[u8; 3]],
+) {
+    let tol = params.neighbour_tolerance_m as f32;
+    let h = depth.len() / w;
+    let o = Vector3::new(o.x as f32, o.y as f32, o.z as f32);
+    normals.par_chunks_mut(w).zip(colours.par_chunks_mut(w)).enumerate().for_each(|(y, (nr, cr))| {
+        match white {
+            Some(img) => {
+                for (c, px) in cr.iter_mut().zip(img.as_raw()[3 * y * w..3 * (y + 1) * w].chunks_exact(3)) {
+                    *c = [px[0], px[1], px[2]];
+                }
+            }
+            None => cr.fill([0; 3]),
+        }
+        let p = |j: usize| Vector3::from(points[j]);
+        for (x, nrm) in nr.iter_mut().enumerate() {
+            let i = y * w + x;
+            *nrm = [0.0; 3];
+            if keep[i] == 0 {
+                continue;
+            }
+            let d0 = depth[i];
+            // A kept neighbour on the same surface.
+            let on = |j: usize| keep[j] != 0 && (depth[j] - d0).abs() <= tol;
+            let pick = |ok: bool, j: usize| (ok && on(j)).then_some(j);
+            let diff = |a: Option<usize>, b: Option<usize>| match (a, b) {
                 (Some(a), Some(b)) => Some(p(b) - p(a)),
                 (Some(a), None) => Some(p(i) - p(a)),
                 (None, Some(b)) => Some(p(b) - p(i)),
                 (None, None) => None,
             };
-            let (Some(du), Some(dv)) = (diff(kept(x - 1, y), kept(x + 1, y)), diff(kept(x, y - 1), kept(x, y + 1)))
-            else {
-                return [0.0; 3];
-            };
-            let mut nrm = du.cross(&dv);
-            let len = nrm.norm();
+            let du = diff(pick(x > 0, i.wrapping_sub(1)), pick(x + 1 < w, i + 1));
+            let dv = diff(pick(y > 0, i.wrapping_sub(w)), pick(y + 1 < h, i + w));
+            let (Some(du), Some(dv)) = (du, dv) else { continue };
+            let mut v = du.cross(&dv);
+            let len = v.norm();
             if !(len > 0.0 && len.is_finite()) {
-                return [0.0; 3];
+                continue;
             }
-            nrm /= len;
-            let to_camera = Vector3::new(o.x as f32, o.y as f32, o.z as f32) - p(i);
-            if nrm.dot(&to_camera) < 0.0 {
-                nrm = -nrm;
+            v /= len;
+            if v.dot(&(o - p(i))) < 0.0 {
+                v = -v;
             }
-            [nrm.x, nrm.y, nrm.z]
-        })
-        .collect();
-    let colours: Vec<[u8; 3]> = (0..n)
-        .into_par_iter()
-        .map(|i| white.map_or([0; 3], |img| img.as_raw()[3 * i..3 * i + 3].try_into().unwrap_or([0; 3])))
-        .collect();
-    for (i, k) in keep.iter().enumerate() {
-        if !k {
-            points[i] = [f32::NAN; 3];
-            depth[i] = 0.0;
+            *nrm = [v.x, v.y, v.z];
         }
-    }
-    Ok(RangeImage { width: w, height: h, points, depth_m: depth, normals, colours, decoded, triangulated, outliers })
+    });
+}
+
+/// Pass 4: the points and depths of pixels that failed the neighbour test cleared.
+#[inline(never)]
+fn clear_pass(keep: &[u8], w: usize, points: &mut [[f32; 3]], depth: &mut [f32]) {
+    points.par_chunks_mut(w).zip(depth.par_chunks_mut(w)).zip(keep.par_chunks(w)).for_each(|((pr, dr), kr)| {
+        for ((p, d), &k) in pr.iter_mut().zip(dr.iter_mut()).zip(kr) {
+            if k == 0 {
+                *p = [f32::NAN; 3];
+                *d = 0.0;
+            }
+        }
+    });
 }
 
 #[cfg(test)]
@@ -521,5 +799,226 @@ mod tests {
             .triangulate(&coords, Some(&img), &TriangulationParams::default())
             .expect_err("size");
         assert!(matches!(e, TriangulateError::ColourSize { found_width: 4, .. }));
+    }
+    /// The per-pixel triangulation this module had before the passes were fused and moved to `f32`
+    /// rays and projector coefficients (`f64` unit rays, `Option` per neighbour): the reference the
+    /// fast path is compared against.
+    fn reference(
+        camera: &CameraModel,
+        projector: &CameraModel,
+        rays: &[[f64; 3]],
+        coords: &ProjectorCoords,
+        white: Option<&image::RgbImage>,
+        params: &TriangulationParams,
+    ) -> Result<RangeImage, TriangulateError> {
+        let (w, h) = (camera.width, camera.height);
+        let n = w as usize * h as usize;
+        let o = camera.centre();
+        let po = projector.centre();
+        let mut points = vec![[f32::NAN; 3]; n];
+        let mut depth = vec![0.0f32; n];
+        let decoded = (0..h as usize)
+            .into_par_iter()
+            .map(|y| (0..w as usize).filter(|&x| coords.get(x, y).is_some()).count())
+            .sum();
+        points.par_chunks_mut(w as usize).zip(depth.par_chunks_mut(w as usize)).enumerate().for_each(
+            |(y, (pr, dr))| {
+                for x in 0..w as usize {
+                    let Some((c, r)) = coords.get(x, y) else { continue };
+                    let d = Vector3::from(rays[y * w as usize + x]);
+                    let p = match r {
+                        None => ray_column(projector, &o, &d, f64::from(c)),
+                        Some(r) => {
+                            let pd = projector.pixel_ray(f64::from(c), f64::from(r));
+                            ray_ray(&o, &d, &po, &pd, params.max_ray_gap_m)
+                        }
+                    };
+                    if let Some(p) = p {
+                        let z = camera.pose.apply(&p).z;
+                        if z > 0.0 && p.iter().all(|v| v.is_finite()) {
+                            pr[x] = [p.x as f32, p.y as f32, p.z as f32];
+                            dr[x] = z as f32;
+                        }
+                    }
+                }
+            },
+        );
+        let triangulated = depth.iter().filter(|&&d| d > 0.0).count();
+
+        // Outlier test and normals, from the 8-neighbourhood in the range image.
+        let (wi, hi) = (w as i64, h as i64);
+        let tol = params.neighbour_tolerance_m as f32;
+        let at = |x: i64, y: i64| -> Option<usize> {
+            (x >= 0 && y >= 0 && x < wi && y < hi).then(|| (y * wi + x) as usize).filter(|&i| depth[i] > 0.0)
+        };
+        let keep: Vec<bool> = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                if depth[i] <= 0.0 {
+                    return false;
+                }
+                let (x, y) = ((i % w as usize) as i64, (i / w as usize) as i64);
+                let mut near = 0u8;
+                for (dx, dy) in [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)] {
+                    if let Some(j) = at(x + dx, y + dy) {
+                        near += u8::from((depth[j] - depth[i]).abs() <= tol);
+                    }
+                }
+                near >= params.min_neighbours
+            })
+            .collect();
+        let outliers = triangulated - keep.iter().filter(|&&k| k).count();
+        let kept = |x: i64, y: i64| at(x, y).filter(|&j| keep[j]);
+        let normals: Vec<[f32; 3]> = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                if !keep[i] {
+                    return [0.0; 3];
+                }
+                let (x, y) = ((i % w as usize) as i64, (i / w as usize) as i64);
+                let p = |j: usize| Vector3::new(points[j][0], points[j][1], points[j][2]);
+                let close = |j: usize| (depth[j] - depth[i]).abs() <= tol;
+                // Central differences where both neighbours are on the surface, else one-sided.
+                let diff = |a: Option<usize>, b: Option<usize>| match (a.filter(|&j| close(j)), b.filter(|&j| close(j)))
+                {
+                    (Some(a), Some(b)) => Some(p(b) - p(a)),
+                    (Some(a), None) => Some(p(i) - p(a)),
+                    (None, Some(b)) => Some(p(b) - p(i)),
+                    (None, None) => None,
+                };
+                let (Some(du), Some(dv)) = (diff(kept(x - 1, y), kept(x + 1, y)), diff(kept(x, y - 1), kept(x, y + 1)))
+                else {
+                    return [0.0; 3];
+                };
+                let mut nrm = du.cross(&dv);
+                let len = nrm.norm();
+                if !(len > 0.0 && len.is_finite()) {
+                    return [0.0; 3];
+                }
+                nrm /= len;
+                let to_camera = Vector3::new(o.x as f32, o.y as f32, o.z as f32) - p(i);
+                if nrm.dot(&to_camera) < 0.0 {
+                    nrm = -nrm;
+                }
+                [nrm.x, nrm.y, nrm.z]
+            })
+            .collect();
+        let colours: Vec<[u8; 3]> = (0..n)
+            .into_par_iter()
+            .map(|i| white.map_or([0; 3], |img| img.as_raw()[3 * i..3 * i + 3].try_into().unwrap_or([0; 3])))
+            .collect();
+        for (i, k) in keep.iter().enumerate() {
+            if !k {
+                points[i] = [f32::NAN; 3];
+                depth[i] = 0.0;
+            }
+        }
+        Ok(RangeImage {
+            width: w,
+            height: h,
+            points,
+            depth_m: depth,
+            normals,
+            colours,
+            decoded,
+            triangulated,
+            outliers,
+        })
+    }
+
+    fn reference_of(
+        camera: &CameraModel,
+        projector: &CameraModel,
+        coords: &ProjectorCoords,
+        white: Option<&image::RgbImage>,
+        params: &TriangulationParams,
+    ) -> RangeImage {
+        let rays: Vec<[f64; 3]> = (0..camera.height as usize)
+            .flat_map(|y| (0..camera.width as usize).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                let d = camera.pixel_ray(x as f64 + 0.5, y as f64 + 0.5);
+                [d.x, d.y, d.z]
+            })
+            .collect();
+        reference(camera, projector, &rays, coords, white, params).expect("reference")
+    }
+
+    /// Same counts, same valid pixels, points within `tol_m`, normals within 1e-3, same colours.
+    fn assert_same(a: &RangeImage, b: &RangeImage, tol_m: f32, what: &str) {
+        assert_eq!((a.decoded, a.triangulated, a.outliers), (b.decoded, b.triangulated, b.outliers), "{what}");
+        assert_eq!(a.colours, b.colours, "{what}");
+        for i in 0..a.depth_m.len() {
+            assert_eq!(a.depth_m[i] > 0.0, b.depth_m[i] > 0.0, "{what}: pixel {i} valid in one only");
+            if a.depth_m[i] > 0.0 {
+                assert!((a.depth_m[i] - b.depth_m[i]).abs() <= tol_m, "{what}: depth {i}");
+                for k in 0..3 {
+                    assert!((a.points[i][k] - b.points[i][k]).abs() <= tol_m, "{what}: point {i}");
+                    assert!((a.normals[i][k] - b.normals[i][k]).abs() <= 1e-3, "{what}: normal {i}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_fused_passes_equal_the_per_pixel_reference() {
+        let white = image::RgbImage::from_fn(96, 72, |x, y| image::Rgb([x as u8, y as u8, (x ^ y) as u8]));
+        let mut cases = 0;
+        for k1 in [0.0, -0.08] {
+            let (cam, proj) = rig(k1);
+            let mut tri = Triangulator::new(&cam, &proj).expect("models");
+            // One output reused across every case: stale values must not survive.
+            let mut out = RangeImage::default();
+            for rows in [false, true] {
+                for (name, hit) in [
+                    ("plane", plane_hit as fn(&Vector3<f64>, &Vector3<f64>) -> Option<Vector3<f64>>),
+                    ("sphere", sphere_hit),
+                ] {
+                    let mut coords = coords_of(&cam, &proj, rows, hit);
+                    // Code centres (steps in depth) and a wild pixel, so the outlier test and the
+                    // one-sided normals have work.
+                    for c in coords.column.iter_mut() {
+                        *c = c.floor() + 0.5;
+                    }
+                    coords.column[36 * 96 + 48] += 40.0;
+                    for params in [
+                        TriangulationParams::default(),
+                        TriangulationParams { min_neighbours: 0, ..Default::default() },
+                    ] {
+                        let what = format!("k1 {k1} rows {rows} {name} min_neighbours {}", params.min_neighbours);
+                        let want = reference_of(&cam, &proj, &coords, Some(&white), &params);
+                        assert!(want.valid_count() > 150, "{what}: {} points", want.valid_count());
+                        tri.triangulate_into(&coords, Some(&white), &params, &mut out).expect("triangulates");
+                        assert_same(&out, &want, 2e-6, &what);
+                        cases += 1;
+                    }
+                }
+            }
+        }
+        assert_eq!(cases, 16);
+    }
+
+    #[test]
+    fn a_decoded_map_triangulates_as_its_centre_coordinates() {
+        let (cam, proj) = rig(0.0);
+        let coords = coords_of(&cam, &proj, true, sphere_hit);
+        let (w, h) = (coords.width, coords.height);
+        let code = |v: f32| if v.is_finite() && v >= 0.0 { v.floor() as u16 } else { INVALID };
+        let row = coords.row.as_ref().expect("rows");
+        let (cols, rws): (Vec<u16>, Vec<u16>) = (0..w * h)
+            .map(|i| match (code(coords.column[i]), code(row[i])) {
+                (c, r) if c == INVALID || r == INVALID => (INVALID, INVALID),
+                cr => cr,
+            })
+            .unzip();
+        let map = ProjectorMap::from_parts(w, h, cols, rws);
+        let mut tri = Triangulator::new(&cam, &proj).expect("models");
+        for rows in [false, true] {
+            let params = TriangulationParams::default();
+            let want = tri.triangulate(&ProjectorCoords::from_map(&map, rows), None, &params).expect("coords");
+            let mut got = RangeImage::default();
+            tri.triangulate_map_into(&map, rows, None, &params, &mut got).expect("map");
+            assert!(got.valid_count() > 150, "rows {rows}: {} points", got.valid_count());
+            assert_same(&got, &want, 0.0, &format!("rows {rows}"));
+        }
     }
 }

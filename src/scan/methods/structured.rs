@@ -31,7 +31,7 @@ use crate::acquisition::{self, CancelToken, PatternStack};
 use crate::config::structured_light::{exposure_frames, PhaseUnwrapping, StripeCoding, StructuredLightConfig};
 use crate::config::{Method, ProjectorConfig, RigConfig, ScanPlan};
 use crate::devices::{Pattern, Rig};
-use crate::geometry::{CameraModel, VoxelGrid};
+use crate::geometry::{turntable_rotation, CameraModel, VoxelGrid};
 use crate::pipeline::structured_light::debruijn::{DeBruijnDecodeParams, DeBruijnStripes};
 use crate::pipeline::structured_light::gamma::{calibration_levels, GammaError, ResponseCurve};
 use crate::pipeline::structured_light::phase::{PhaseDecodeParams, PhaseShiftPatterns, Unwrapping};
@@ -389,11 +389,17 @@ fn fusion_depth(range: &RangeImage, white_grey: &[u8], free_below: u8) -> Vec<f3
         .collect()
 }
 
-/// Distances from each point of `range` to the true surface along its camera ray (`camera` in the
-/// object frame): `(sum, sum of squares, count)`, metres. A point whose ray misses the scene is
-/// skipped (it cannot be scored).
-fn point_errors(camera: &CameraModel, range: &RangeImage, scene: &crate::sim::Scene) -> (f64, f64, usize) {
+/// Distances from each point of `range` (rig frame, turntable at `angle_deg`) to the true surface
+/// along its camera ray (`camera` in the object frame): `(sum, sum of squares, count)`, metres. A
+/// point whose ray misses the scene is skipped (it cannot be scored).
+fn point_errors(
+    camera: &CameraModel,
+    range: &RangeImage,
+    angle_deg: f64,
+    scene: &crate::sim::Scene,
+) -> (f64, f64, usize) {
     let o = camera.centre();
+    let to_object = turntable_rotation(-angle_deg);
     let w = range.width as usize;
     let (mut sum, mut sq, mut n) = (0.0, 0.0, 0);
     for (i, p) in range.points.iter().enumerate() {
@@ -402,7 +408,8 @@ fn point_errors(camera: &CameraModel, range: &RangeImage, scene: &crate::sim::Sc
         }
         let d = camera.pixel_ray((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
         if let Some(hit) = scene.intersect(&o, &d, 0.0, f64::INFINITY) {
-            let e = (nalgebra::Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])) - hit.point).norm();
+            let p = to_object * nalgebra::Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            let e = (p - hit.point).norm();
             sum += e;
             sq += e * e;
             n += 1;
@@ -453,6 +460,11 @@ pub struct StructuredLightFlow {
     summary: StructuredLightSummary,
     cloud: PointCloud,
     map: ProjectorMap,
+    /// The camera and projector in the rig frame, built at the first view and kept: views are
+    /// triangulated in the rig frame and their points turned into the object frame.
+    triangulator: Option<Triangulator>,
+    /// The last view's range image (rig frame), its buffers reused from view to view.
+    range: RangeImage,
     world: Option<SimWorld>,
     errors: (f64, f64, usize),
     timings: Timings,
@@ -531,6 +543,8 @@ impl StructuredLightFlow {
             settings,
             cloud: PointCloud::new(),
             map: ProjectorMap::new(),
+            triangulator: None,
+            range: RangeImage::default(),
             world: world.cloned(),
             errors: (0.0, 0.0, 0),
             timings: Timings::default(),
@@ -709,12 +723,20 @@ impl ScanFlow for StructuredLightFlow {
         self.summary.decode_s += t.elapsed().as_secs_f64();
         events(ScanEvent::Stage("triangulating"));
         let t = Instant::now();
-        // Both models in the object frame at this view's angle: the points come out there.
+        // Triangulated in the rig frame, with the camera rays computed once per scan; the points and
+        // normals are turned into the object frame at this view's angle below.
         let cam = camera.for_turntable_angle(stack.angle_deg);
-        let proj = self.projector.for_turntable_angle(stack.angle_deg);
-        let range = Triangulator::new(&cam, &proj)
-            .and_then(|t| t.triangulate(&coords, Some(white), &self.tri))
+        let triangulator = match &mut self.triangulator {
+            Some(t) => t,
+            None => self.triangulator.insert(
+                Triangulator::new(&camera, &self.projector)
+                    .map_err(|source| sl_err(StructuredLightError::Triangulate { position, source }))?,
+            ),
+        };
+        triangulator
+            .triangulate_into(&coords, Some(white), &self.tri, &mut self.range)
             .map_err(|source| sl_err(StructuredLightError::Triangulate { position, source }))?;
+        let range = &self.range;
         self.summary.triangulate_s += t.elapsed().as_secs_f64();
         self.summary.decoded.push(range.decoded);
         self.summary.outliers += range.outliers;
@@ -726,18 +748,19 @@ impl ScanFlow for StructuredLightFlow {
         }
         let points = pts.len();
         self.summary.points_per_view.push(points);
-        let view =
+        let mut view =
             PointCloud::from_parts(pts, Some(nrm), Some(col)).map_err(|e| sl_err(StructuredLightError::Cloud(e)))?;
+        view.rig_to_object(stack.angle_deg);
         self.cloud.extend(view);
         if let Some(world) = &self.world {
-            let (sum, sq, n) = point_errors(&cam, &range, world.scene());
+            let (sum, sq, n) = point_errors(&cam, range, stack.angle_deg, world.scene());
             self.errors.0 += sum;
             self.errors.1 += sq;
             self.errors.2 += n;
         }
         events(ScanEvent::Stage("fusing"));
         let t = Instant::now();
-        let depth = fusion_depth(&range, &white_grey, self.settings.free_below);
+        let depth = fusion_depth(range, &white_grey, self.settings.free_below);
         self.tsdf.integrate(&cam, &depth).map_err(|e| sl_err(StructuredLightError::Fusion(e)))?;
         self.summary.integrate_s += t.elapsed().as_secs_f64();
         if let Some(hull) = self.hull.as_mut() {
