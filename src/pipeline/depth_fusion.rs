@@ -378,7 +378,7 @@ impl Update {
             // Hidden more than the truncation behind the surface: no update.
             let hit = measured & (sdf >= -self.trunc);
             let fuse = hit | (self.missing_is_free & (d == 0.0));
-            let sample = if measured { (sdf * self.inv_trunc).max(-1.0).min(1.0) } else { 1.0 };
+            let sample = if measured { (sdf * self.inv_trunc).clamp(-1.0, 1.0) } else { 1.0 };
             let (v, wt) = (values[i], weights[i]);
             let fused = (v * wt + sample) / (wt + 1.0);
             // Select by bit mask (all ones where the voxel keeps its old state), which vectorises.
