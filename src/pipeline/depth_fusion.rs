@@ -56,6 +56,15 @@ pub enum DepthFusionError {
     /// The grid has no voxels.
     #[error("the voxel grid is empty")]
     EmptyGrid,
+    /// The depth map is too large for the `f32` projection (pixel coordinates must stay below 2^23,
+    /// pixel indices below 2^31).
+    #[error("a {width} x {height} depth map is too large to fuse")]
+    ImageTooLarge {
+        /// Camera width, pixels.
+        width: u32,
+        /// Camera height, pixels.
+        height: u32,
+    },
 }
 
 /// What one integration did.
@@ -112,64 +121,64 @@ impl Tsdf {
     /// the optical axis, 0 = no measurement, `NaN` = unknown (never carves, even with
     /// `missing_is_free`); `camera` is the depth camera in the grid's (object) frame, i.e. already
     /// turned with `for_turntable_angle`.
+    ///
+    /// Slabs of constant `z` run in parallel; within a slab each row of voxels along `x` is done in
+    /// three passes over small buffers: project (camera coordinates are affine in the voxel index, so
+    /// a row is `start + i * step`: a few multiply-adds and one reciprocal per voxel in `f32`,
+    /// vectorised), look the depth up (the one gather, scalar), and update value and weight without
+    /// branches (vectorised). Rows that project wholly outside the image or behind the camera are
+    /// skipped after the first pass.
     pub fn integrate(&mut self, camera: &CameraModel, depth_m: &[f32]) -> Result<IntegrateStats, DepthFusionError> {
         let (w, h) = (camera.width, camera.height);
         if depth_m.len() != w as usize * h as usize {
             return Err(DepthFusionError::DepthSize { len: depth_m.len(), width: w, height: h });
         }
+        if w.max(h) >= 1 << 23 || depth_m.len() > i32::MAX as usize {
+            return Err(DepthFusionError::ImageTooLarge { width: w, height: h });
+        }
         let grid = self.grid;
-        let trunc = self.params.truncation_m as f32;
-        let max_weight = self.params.max_weight.max(1.0);
-        let missing_is_free = self.params.missing_is_free;
-        let slice = grid.dims[0] * grid.dims[1];
+        let projection = RowProjection::new(camera, &grid);
+        let update = Update {
+            trunc: self.params.truncation_m as f32,
+            inv_trunc: (1.0 / self.params.truncation_m) as f32,
+            max_weight: self.params.max_weight.max(1.0),
+            missing_is_free: self.params.missing_is_free,
+        };
+        let distorted = camera.intrinsics.has_distortion();
+        let [nx, ny, _] = grid.dims;
         let (updated, near_surface) = self
             .value
-            .par_chunks_mut(slice)
-            .zip(self.weight.par_chunks_mut(slice))
+            .par_chunks_mut(nx * ny)
+            .zip(self.weight.par_chunks_mut(nx * ny))
             .enumerate()
-            .map(|(k, (values, weights))| {
-                let (mut updated, mut near) = (0u64, 0u64);
-                // Camera coordinates are affine in the voxel index: one step along x per voxel.
-                let step = camera.pose.rotation.column(0) * grid.voxel_size;
-                let intr = &camera.intrinsics;
-                for j in 0..grid.dims[1] {
-                    let row = camera.pose.apply(&grid.centre(0, j, k));
-                    for i in 0..grid.dims[0] {
-                        let c = row + step * i as f64;
-                        if c.z <= 0.0 {
-                            continue;
-                        }
-                        let z = c.z;
-                        let q = intr.normalised_to_pixel(c.x / c.z, c.y / c.z);
-                        let (uf, vf) = (q.x.floor(), q.y.floor());
-                        if !(uf >= 0.0 && vf >= 0.0 && uf < w as f64 && vf < h as f64) {
-                            continue;
-                        }
-                        let (u, v) = (uf as u32, vf as u32);
-                        let d = depth_m[(v * w + u) as usize];
-                        let sample = if d > 0.0 && d.is_finite() {
-                            let sdf = d - z as f32;
-                            if sdf < -trunc {
-                                continue;
-                            }
-                            if sdf < trunc {
-                                near += 1;
-                            }
-                            (sdf / trunc).clamp(-1.0, 1.0)
-                        } else if missing_is_free && d == 0.0 {
-                            1.0
+            .map_init(
+                || RowBuffers::new(nx),
+                |buf, (k, (values, weights))| {
+                    let (mut updated, mut near) = (0u64, 0u64);
+                    for (j, (values, weights)) in
+                        values.chunks_exact_mut(nx).zip(weights.chunks_exact_mut(nx)).enumerate()
+                    {
+                        let start = camera.pose.apply(&grid.centre(0, j, k)).map(|c| c as f32);
+                        let start = [start.x, start.y, start.z];
+                        let inside = if distorted {
+                            projection.project::<true>(start, &buf.ramp, &mut buf.pixel, &mut buf.z)
                         } else {
-                            continue;
+                            projection.project::<false>(start, &buf.ramp, &mut buf.pixel, &mut buf.z)
                         };
-                        let idx = i + grid.dims[0] * j;
-                        let wt = weights[idx];
-                        values[idx] = (values[idx] * wt + sample) / (wt + 1.0);
-                        weights[idx] = (wt + 1.0).min(max_weight);
-                        updated += 1;
+                        if !inside {
+                            continue;
+                        }
+                        for (d, &p) in buf.depth.iter_mut().zip(&buf.pixel) {
+                            // -1 (outside) becomes usize::MAX: no pixel.
+                            *d = depth_m.get(p as usize).copied().unwrap_or(f32::NAN);
+                        }
+                        let (u, n) = update.row(values, weights, &buf.depth, &buf.z);
+                        updated += u64::from(u);
+                        near += u64::from(n);
                     }
-                }
-                (updated, near)
-            })
+                    (updated, near)
+                },
+            )
             .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
         self.views += 1;
         Ok(IntegrateStats { updated, near_surface })
@@ -250,6 +259,148 @@ impl Tsdf {
             .sum();
         moved
     }
+}
+
+/// Scratch for one row of voxels along `x`, reused over a slab.
+#[derive(Debug)]
+struct RowBuffers {
+    /// 0, 1, 2, ...: the voxel index as `f32`.
+    ramp: Vec<f32>,
+    /// Depth-map index of each voxel's pixel, -1 when behind the camera or outside the image.
+    pixel: Vec<i32>,
+    /// Camera `z` of each voxel centre, metres.
+    z: Vec<f32>,
+    /// The depth read at each voxel's pixel (`NaN` for none).
+    depth: Vec<f32>,
+}
+
+impl RowBuffers {
+    fn new(n: usize) -> RowBuffers {
+        RowBuffers { ramp: (0..n).map(|i| i as f32).collect(), pixel: vec![0; n], z: vec![0.0; n], depth: vec![0.0; n] }
+    }
+}
+
+/// One view's projection of rows of voxel centres, in `f32`: camera coordinates are affine in the
+/// voxel index, so voxel `i` of a row is `start + i * step`.
+#[derive(Debug, Clone, Copy)]
+struct RowProjection {
+    /// Camera-frame step from one voxel to the next along `x`, metres.
+    step: [f32; 3],
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    skew: f32,
+    k1: f32,
+    k2: f32,
+    k3: f32,
+    p1: f32,
+    p2: f32,
+    width: f32,
+    height: f32,
+    row_pixels: u32,
+}
+
+impl RowProjection {
+    fn new(camera: &CameraModel, grid: &VoxelGrid) -> RowProjection {
+        let step = camera.pose.rotation.column(0) * grid.voxel_size;
+        let i = &camera.intrinsics;
+        RowProjection {
+            step: [step.x as f32, step.y as f32, step.z as f32],
+            fx: i.fx as f32,
+            fy: i.fy as f32,
+            cx: i.cx as f32,
+            cy: i.cy as f32,
+            skew: i.skew as f32,
+            k1: i.k1 as f32,
+            k2: i.k2 as f32,
+            k3: i.k3 as f32,
+            p1: i.p1 as f32,
+            p2: i.p2 as f32,
+            width: camera.width as f32,
+            height: camera.height as f32,
+            row_pixels: camera.width,
+        }
+    }
+
+    /// Camera `z` and depth-map index (-1: behind the camera or outside the image) of each voxel of
+    /// the row whose first centre is at `start` (camera frame); whether any voxel lands in the image.
+    /// `DISTORT` applies the lens distortion ([`crate::geometry::Intrinsics::distort`]).
+    fn project<const DISTORT: bool>(&self, start: [f32; 3], ramp: &[f32], pixel: &mut [i32], z: &mut [f32]) -> bool {
+        let mut inside = 0u32;
+        for ((&t, p), zo) in ramp.iter().zip(pixel.iter_mut()).zip(z.iter_mut()) {
+            let xc = start[0] + self.step[0] * t;
+            let yc = start[1] + self.step[1] * t;
+            let zc = start[2] + self.step[2] * t;
+            let r = 1.0 / zc;
+            let (mut x, mut y) = (xc * r, yc * r);
+            if DISTORT {
+                let r2 = x * x + y * y;
+                let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
+                let xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
+                let yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
+                (x, y) = (xd, yd);
+            }
+            let u = self.fx * x + self.skew * y + self.cx;
+            let v = self.fy * y + self.cy;
+            let ok = (zc > 0.0) & (u >= 0.0) & (v >= 0.0) & (u < self.width) & (v < self.height);
+            // Wrapping keeps the discarded coordinates (NaN, huge) from overflowing.
+            let index = floor_u32(v).wrapping_mul(self.row_pixels).wrapping_add(floor_u32(u));
+            *p = if ok { index as i32 } else { -1 };
+            *zo = zc;
+            inside += u32::from(ok);
+        }
+        inside > 0
+    }
+}
+
+/// The per-voxel update of one view.
+#[derive(Debug, Clone, Copy)]
+struct Update {
+    trunc: f32,
+    inv_trunc: f32,
+    max_weight: f32,
+    missing_is_free: bool,
+}
+
+impl Update {
+    /// Fold one row's depth samples (`NaN` = no pixel) at camera depths `z` into its values and
+    /// weights, without branches (indexed loop over equal-length slices and bit-mask selects, which
+    /// the compiler vectorises); returns the voxels updated and those within the truncation band.
+    fn row(&self, values: &mut [f32], weights: &mut [f32], depth: &[f32], z: &[f32]) -> (u32, u32) {
+        let (mut updated, mut near) = (0u32, 0u32);
+        let n = values.len().min(weights.len()).min(depth.len()).min(z.len());
+        let (values, weights, depth, z) = (&mut values[..n], &mut weights[..n], &depth[..n], &z[..n]);
+        for i in 0..n {
+            let d = depth[i];
+            let measured = (d > 0.0) & (d < f32::INFINITY);
+            let sdf = d - z[i];
+            // Hidden more than the truncation behind the surface: no update.
+            let hit = measured & (sdf >= -self.trunc);
+            let fuse = hit | (self.missing_is_free & (d == 0.0));
+            let sample = if measured { (sdf * self.inv_trunc).clamp(-1.0, 1.0) } else { 1.0 };
+            let (v, wt) = (values[i], weights[i]);
+            let fused = (v * wt + sample) / (wt + 1.0);
+            // Select by bit mask (all ones where the voxel keeps its old state), which vectorises.
+            let keep = u32::from(fuse).wrapping_sub(1);
+            values[i] = f32::from_bits((fused.to_bits() & !keep) | (v.to_bits() & keep));
+            weights[i] = f32::from_bits(((wt + 1.0).min(self.max_weight).to_bits() & !keep) | (wt.to_bits() & keep));
+            updated += u32::from(fuse);
+            near += u32::from(hit & (sdf < self.trunc));
+        }
+        (updated, near)
+    }
+}
+
+/// `floor(x)` for `0 <= x < 2^23` without a float-to-integer conversion (which SSE2 cannot vectorise
+/// with Rust's saturating semantics): adding 2^23 rounds `x` to an integer held in the mantissa.
+/// Other inputs give unspecified values.
+#[inline(always)]
+fn floor_u32(x: f32) -> u32 {
+    const MAGIC: f32 = 8_388_608.0;
+    let big = x + MAGIC;
+    let rounded = big.to_bits().wrapping_sub(MAGIC.to_bits());
+    rounded.wrapping_sub(u32::from(big - MAGIC > x))
 }
 
 #[cfg(test)]
@@ -350,6 +501,165 @@ mod tests {
         let after = err(&mesh);
         assert!(moved > mesh.vertices.len() / 2, "{moved} of {}", mesh.vertices.len());
         assert!(after < 0.15 * g.voxel_size && after < before, "mean error {after} m (before {before} m)");
+    }
+
+    /// The per-voxel definition of [`Tsdf::integrate`], in `f64`: every voxel centre projected on its
+    /// own. It also marks the voxels whose outcome in some view rests on a tie that the fast path's
+    /// `f32` may break the other way (a projection within `EDGE_PX` of a pixel edge, a signed distance
+    /// within `EDGE_M` of minus the truncation); the comparison skips those.
+    struct Reference {
+        grid: VoxelGrid,
+        params: FusionParams,
+        value: Vec<f64>,
+        weight: Vec<f64>,
+        tied: Vec<bool>,
+    }
+
+    const EDGE_PX: f64 = 5e-4;
+    const EDGE_M: f64 = 1e-6;
+
+    impl Reference {
+        fn new(grid: VoxelGrid, params: FusionParams) -> Reference {
+            let n = grid.len();
+            Reference { grid, params, value: vec![1.0; n], weight: vec![0.0; n], tied: vec![false; n] }
+        }
+
+        /// The view's stats, and how many voxels it tied.
+        fn integrate(&mut self, cam: &CameraModel, depth: &[f32]) -> (IntegrateStats, u64) {
+            let g = self.grid;
+            let trunc = self.params.truncation_m;
+            let max_weight = f64::from(self.params.max_weight.max(1.0));
+            let (mut stats, mut tied) = (IntegrateStats::default(), 0);
+            for k in 0..g.dims[2] {
+                for j in 0..g.dims[1] {
+                    for i in 0..g.dims[0] {
+                        let idx = g.index(i, j, k);
+                        let c = cam.pose.apply(&g.centre(i, j, k));
+                        if c.z <= 0.0 {
+                            continue;
+                        }
+                        let q = cam.intrinsics.normalised_to_pixel(c.x / c.z, c.y / c.z);
+                        let on_edge = |x: f64| (x - x.round()).abs() < EDGE_PX;
+                        if on_edge(q.x) || on_edge(q.y) {
+                            self.tied[idx] = true;
+                            tied += 1;
+                        }
+                        if !(q.x >= 0.0 && q.y >= 0.0 && q.x < f64::from(cam.width) && q.y < f64::from(cam.height)) {
+                            continue;
+                        }
+                        let d = depth[q.y as usize * cam.width as usize + q.x as usize];
+                        let sample = if d > 0.0 && d.is_finite() {
+                            let sdf = f64::from(d) - c.z;
+                            if (sdf + trunc).abs() < EDGE_M {
+                                self.tied[idx] = true;
+                                tied += 1;
+                            }
+                            if sdf < -trunc {
+                                continue;
+                            }
+                            if sdf < trunc {
+                                stats.near_surface += 1;
+                            }
+                            (sdf / trunc).clamp(-1.0, 1.0)
+                        } else if self.params.missing_is_free && d == 0.0 {
+                            1.0
+                        } else {
+                            continue;
+                        };
+                        let wt = self.weight[idx];
+                        self.value[idx] = (self.value[idx] * wt + sample) / (wt + 1.0);
+                        self.weight[idx] = (wt + 1.0).min(max_weight);
+                        stats.updated += 1;
+                    }
+                }
+            }
+            (stats, tied)
+        }
+    }
+
+    /// Fuses the views into a [`Tsdf`] and into the [`Reference`] and compares them voxel by voxel;
+    /// returns the voxels compared.
+    fn matches_reference(grid: VoxelGrid, params: FusionParams, views: &[(CameraModel, Vec<f32>)]) -> usize {
+        let mut fast = Tsdf::new(grid, params).expect("tsdf");
+        let mut reference = Reference::new(grid, params);
+        for (n, (cam, depth)) in views.iter().enumerate() {
+            let got = fast.integrate(cam, depth).expect("integrate");
+            let (want, tied) = reference.integrate(cam, depth);
+            assert!(want.updated > 0, "view {n} updates nothing: a useless case");
+            for (a, b) in [(got.updated, want.updated), (got.near_surface, want.near_surface)] {
+                assert!(a.abs_diff(b) <= tied, "view {n}: {got:?} vs {want:?} ({tied} tied)");
+            }
+        }
+        let mut compared = 0;
+        for k in 0..grid.dims[2] {
+            for j in 0..grid.dims[1] {
+                for i in 0..grid.dims[0] {
+                    let idx = grid.index(i, j, k);
+                    if reference.tied[idx] {
+                        continue;
+                    }
+                    let (value, weight) = fast.get(i, j, k);
+                    let (want_value, want_weight) = (reference.value[idx], reference.weight[idx]);
+                    assert_eq!(f64::from(weight), want_weight, "weight of {i} {j} {k}");
+                    assert!(
+                        (f64::from(value) - want_value).abs() < 1e-4,
+                        "value of {i} {j} {k}: {value} vs {want_value}"
+                    );
+                    compared += 1;
+                }
+            }
+        }
+        compared
+    }
+
+    #[test]
+    fn fast_integrate_matches_the_per_voxel_definition() {
+        // A box whose sides differ, so x, y and z cannot be mixed up unnoticed.
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.04, -0.036, -0.03], max: [0.04, 0.04, 0.034] }, 40);
+        assert!(grid.dims[0] != grid.dims[1] && grid.dims[1] != grid.dims[2], "{:?}", grid.dims);
+        let params = FusionParams { truncation_m: 3.0 * grid.voxel_size, max_weight: 5.0, missing_is_free: true };
+
+        // A ring of views around the sphere, empty background carving.
+        let ring: Vec<_> = (0..8)
+            .map(|i| {
+                let cam = camera(45.0 * i as f64 + 10.0);
+                let depth = sphere_depth(&cam);
+                (cam, depth)
+            })
+            .collect();
+        let n = matches_reference(grid, params, &ring);
+        assert!(n > grid.len() * 9 / 10, "{n} of {} voxels compared", grid.len());
+
+        // Lens distortion and skew, a camera so close that the grid overflows the image and part of
+        // it lies behind the camera, dropouts (0, ignored here), unknown (NaN) and invalid pixels.
+        let mut close = CameraModel {
+            intrinsics: Intrinsics {
+                skew: 0.7,
+                ..Intrinsics::new(300.0, 290.0, 82.0, 57.0).with_distortion([-0.21, 0.05, 0.001, -0.002, 0.01])
+            },
+            pose: Pose::look_at(Vector3::new(0.01, -0.034, 0.012), Vector3::zeros(), Vector3::z()),
+            ..camera(0.0)
+        };
+        let mut views = Vec::new();
+        for angle in [0.0, 20.0, 200.0] {
+            close = close.for_turntable_angle(angle);
+            let mut depth = sphere_depth(&close);
+            for (n, d) in depth.iter_mut().enumerate() {
+                match n % 97 {
+                    0 => *d = f32::NAN,
+                    1 => *d = -0.1,
+                    2 => *d = f32::INFINITY,
+                    3 => *d = 0.0,
+                    _ => {}
+                }
+            }
+            views.push((close, depth));
+        }
+        views.push(ring[3].clone());
+        for missing_is_free in [false, true] {
+            let n = matches_reference(grid, FusionParams { missing_is_free, ..params }, &views);
+            assert!(n > grid.len() * 8 / 10, "{n} of {} voxels compared", grid.len());
+        }
     }
 
     #[test]
