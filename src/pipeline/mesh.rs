@@ -591,6 +591,33 @@ mod tests {
     }
 
     #[test]
+    fn relaxation_leaves_the_stairs_for_sub_voxel_positions_on_their_edges() {
+        let occ = sphere(40, 0.6);
+        let centre = Vector3::new(0.05, -0.1, 0.0);
+        let stairs = extract_surface(&occ, &MeshParams { smooth_radius: 0, relax_iterations: 0 }).expect("mesh");
+        let relaxed = extract_surface(&occ, &MeshParams::smoothed(0)).expect("mesh");
+        assert_eq!(stairs.triangles, relaxed.triangles, "relaxation moves vertices only");
+        assert_eq!(relaxed.topology().open_or_misoriented_edges, 0);
+        assert_eq!((relaxed.topology().components, relaxed.topology().euler_characteristic), (1, 2));
+        let rms = |m: &TriangleMesh| {
+            let sum: f64 = m
+                .vertices
+                .iter()
+                .map(|v| ((Vector3::new(v[0] as f64, v[1] as f64, v[2] as f64) - centre).norm() - 0.6).powi(2))
+                .sum();
+            (sum / m.vertices.len() as f64).sqrt()
+        };
+        let voxel = occ.grid().voxel_size;
+        let (before, after) = (rms(&stairs), rms(&relaxed));
+        assert!(after < 0.6 * before, "radial error {after} vs {before} on the stairs (voxel {voxel})");
+        // Every vertex stays on its lattice edge: within half a diagonal of the stairs' vertex.
+        for (a, b) in stairs.vertices.iter().zip(&relaxed.vertices) {
+            let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt() as f64;
+            assert!(d <= 0.5 * 3f64.sqrt() * voxel + 1e-6, "moved {d}");
+        }
+    }
+
+    #[test]
     fn object_touching_the_grid_border_is_closed_by_the_padding() {
         let g = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [1.0; 3] }, 19);
         let occ = Occupancy::from_fn(g, |p| p.x < 0.7 || (p.y - 0.5).abs() < 0.1);

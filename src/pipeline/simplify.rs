@@ -76,6 +76,10 @@ impl Quadric {
     }
 }
 
+/// A queued edge collapse: cost (f64 bits, non-negative so they order as the values), the edge's ends
+/// and their versions when it was queued (stale once either end changed).
+type Candidate = (u64, u32, u32, u32, u32);
+
 /// Parameters of [`simplify`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SimplifyParams {
@@ -102,7 +106,7 @@ pub fn simplify(mesh: &TriangleMesh, params: &SimplifyParams) -> (TriangleMesh, 
     let n = mesh.vertices.len();
     let valid = mesh.triangles.iter().all(|t| t.iter().all(|&i| (i as usize) < n));
     let bound2 = params.max_error_m * params.max_error_m;
-    if !valid || !(bound2 > 0.0 && bound2.is_finite()) || mesh.triangles.is_empty() {
+    if !(valid && bound2 > 0.0 && bound2.is_finite()) || mesh.triangles.is_empty() {
         stats.triangles_after = mesh.triangles.len();
         return (mesh.clone(), stats);
     }
@@ -134,7 +138,7 @@ pub fn simplify(mesh: &TriangleMesh, params: &SimplifyParams) -> (TriangleMesh, 
     }
     let mut version = vec![0u32; n];
     let mut alive = vec![true; n];
-    let mut heap: BinaryHeap<Reverse<(u64, u32, u32, u32, u32)>> = BinaryHeap::new();
+    let mut heap: BinaryHeap<Reverse<Candidate>> = BinaryHeap::new();
     let push = |heap: &mut BinaryHeap<_>, pos: &[[f64; 3]], quadric: &[Quadric], version: &[u32], a: u32, b: u32| {
         let (cost, _) = best_position(pos, quadric, a, b);
         if cost <= bound2 {
