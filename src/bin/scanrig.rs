@@ -698,6 +698,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 resolution,
                 bbox,
                 smooth_radius: smooth,
+                mesh_max_error_voxels: scanrig::config::DEFAULT_MESH_MAX_ERROR_VOXELS,
                 out: out.clone(),
             };
             let mut reporter = Reporter::new(0);

@@ -747,6 +747,10 @@ impl RigConfig {
                 format!("must be at most {} voxels", crate::pipeline::MeshParams::MAX_SMOOTH_RADIUS),
             );
         }
+        let e = r.mesh.max_error_voxels;
+        if !(e.is_finite() && (0.0..=8.0).contains(&e)) {
+            bad("reconstruction.mesh.max_error_voxels", format!("must be in [0, 8] voxels, got {e}"));
+        }
         let p = &r.photo;
         if let Some(t) = p.threshold.filter(|t| !(t.is_finite() && *t > 0.0 && *t <= 255.0)) {
             bad("reconstruction.photo.threshold", format!("must be in (0, 255] levels, got {t}"));

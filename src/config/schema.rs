@@ -999,13 +999,31 @@ impl Default for SilhouetteConfig {
 }
 
 /// `[reconstruction.mesh]`.
-#[derive(Debug, Clone, Default, Deserialize, serde::Serialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct MeshConfig {
     /// Box-filter the occupancy over this many voxels (radius) before marching cubes, so the mesh
-    /// is not a staircase; 0 = raw occupancy.
+    /// is not a staircase; 0 = raw occupancy (the surface is still relaxed off the voxel stairs).
     #[serde(default)]
     pub smooth_radius: u32,
+    /// Error bound of the mesh simplification (quadric edge collapses), voxel edges: the sampled
+    /// symmetric Hausdorff distance between the simplified and the unsimplified surface stays within
+    /// it; 0 = no simplification.
+    #[serde(default = "default_mesh_max_error_voxels")]
+    pub max_error_voxels: f64,
+}
+
+/// Default of [`MeshConfig::max_error_voxels`]: a quarter voxel, below what any method measures to.
+pub const DEFAULT_MESH_MAX_ERROR_VOXELS: f64 = 0.25;
+
+fn default_mesh_max_error_voxels() -> f64 {
+    DEFAULT_MESH_MAX_ERROR_VOXELS
+}
+
+impl Default for MeshConfig {
+    fn default() -> Self {
+        MeshConfig { smooth_radius: 0, max_error_voxels: DEFAULT_MESH_MAX_ERROR_VOXELS }
+    }
 }
 
 /// `[reconstruction.laser]`: stripe detection, point cloud clean-up and meshing of method `laser`.

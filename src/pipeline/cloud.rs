@@ -1086,7 +1086,7 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
     let occupancy = Occupancy::from_index_fn(*grid, |i, j, k| label[grid.index(i, j, k)] < 0);
     let inside_voxels = occupancy.count();
     // 4. Surface, then vertices onto the zero crossing (at most one voxel edge).
-    let mut mesh = extract_surface(&occupancy, &MeshParams { smooth_radius: 0 })?;
+    let mut mesh = extract_surface(&occupancy, &MeshParams::smoothed(0))?;
     let limit = vs as f32;
     let refined: usize = mesh
         .vertices

@@ -12,6 +12,14 @@
 //!
 //! Cost follows the surface: only 8³ cell blocks whose neighbourhood holds both occupied and empty
 //! voxels (or reaches the padding) are visited.
+//!
+//! On a binary occupancy every vertex sits at the middle of its lattice edge, so the surface is a
+//! staircase of voxel faces. [`MeshParams::relax_iterations`] then relaxes it as a constrained
+//! elastic surface net (Gibson, "Constrained elastic surface nets", MICCAI 1998): each vertex moves
+//! towards the mean of its neighbours but stays on its own lattice edge, between the inside and the
+//! outside lattice point it separates. The surface keeps separating exactly the same voxel centres
+//! (it stays consistent with the occupancy), keeps its connectivity (closed and oriented), and lands
+//! at sub-voxel positions instead of on the stairs.
 
 use std::collections::HashMap;
 
@@ -24,11 +32,22 @@ use super::occupancy::{Brick, Occupancy, BRICK};
 pub struct MeshParams {
     /// Box-smoothing radius, voxels (0 = none; at most [`MeshParams::MAX_SMOOTH_RADIUS`]).
     pub smooth_radius: u32,
+    /// Constrained relaxation steps (module docs); 0 leaves every vertex where the interpolation put it.
+    pub relax_iterations: u32,
 }
 
 impl MeshParams {
     /// The largest supported smoothing radius, voxels.
     pub const MAX_SMOOTH_RADIUS: u32 = 7;
+    /// Relaxation steps of [`MeshParams::smoothed`]: enough for the stairs of a voxel surface to settle
+    /// (each step moves a vertex at most half-way to its neighbours' mean).
+    pub const RELAX_ITERATIONS: u32 = 16;
+
+    /// Box smoothing of `smooth_radius` voxels, then [`MeshParams::RELAX_ITERATIONS`] relaxation steps:
+    /// what the scan methods mesh with.
+    pub fn smoothed(smooth_radius: u32) -> MeshParams {
+        MeshParams { smooth_radius, relax_iterations: Self::RELAX_ITERATIONS }
+    }
 }
 
 /// A triangle mesh in metres (the occupancy grid's frame), counter-clockwise triangles seen from
@@ -140,20 +159,89 @@ pub fn extract_surface(occupancy: &Occupancy, params: &MeshParams) -> Result<Tri
     }
     let grid = occupancy.grid();
     let s = grid.voxel_size;
-    let mut vertices = vec![[0f32; 3]; keys.len()];
+    // Lattice positions first (relaxed there), metres at the end.
+    let mut lattice = vec![[0f32; 3]; keys.len()];
     let mut triangles = Vec::with_capacity(parts.iter().map(|p| p.1.len()).sum());
     for (verts, tris) in &parts {
         let global: Vec<u32> = verts
             .iter()
             .map(|(k, p)| {
                 let g = keys.binary_search(k).unwrap_or(0);
-                vertices[g] = [0, 1, 2].map(|a| (grid.origin[a] + (p[a] as f64 - 0.5) * s) as f32);
+                lattice[g] = *p;
                 g as u32
             })
             .collect();
         triangles.extend(tris.iter().map(|t| t.map(|i| global[i as usize])));
     }
+    if params.relax_iterations > 0 {
+        let pitch = [1u64, (dims[0] + 2) as u64, ((dims[0] + 2) * (dims[1] + 2)) as u64];
+        relax_on_edges(&mut lattice, &keys, pitch, &triangles, params.relax_iterations);
+    }
+    let vertices =
+        lattice.iter().map(|p| [0, 1, 2].map(|a| (grid.origin[a] + (p[a] as f64 - 0.5) * s) as f32)).collect();
     Ok(TriangleMesh { vertices, triangles, colors: None })
+}
+
+/// How far from either end of its lattice edge a relaxed vertex stays, as a fraction of the edge: keeps
+/// every triangle non-degenerate.
+const EDGE_MARGIN: f32 = 0.02;
+
+/// Constrained relaxation (module docs): `lattice[v]` (lattice units) lies on the edge of `keys[v]`
+/// (start point `key / 8` on the lattice of `pitch`, direction bits `key % 8`); each step moves it
+/// half-way to the mean of its neighbours, projected back onto its edge and kept within
+/// [`EDGE_MARGIN`] of its ends.
+fn relax_on_edges(lattice: &mut [[f32; 3]], keys: &[u64], pitch: [u64; 3], triangles: &[[u32; 3]], iterations: u32) {
+    let n = lattice.len();
+    // Neighbours in compressed rows (each undirected edge appears in two triangles: both directions).
+    let mut count = vec![0u32; n + 1];
+    for t in triangles {
+        for e in 0..3 {
+            count[t[e] as usize + 1] += 1;
+        }
+    }
+    for i in 0..n {
+        count[i + 1] += count[i];
+    }
+    let mut fill = count.clone();
+    let mut adj = vec![0u32; count[n] as usize];
+    for t in triangles {
+        for e in 0..3 {
+            let (a, b) = (t[e] as usize, t[(e + 1) % 3]);
+            adj[fill[a] as usize] = b;
+            fill[a] += 1;
+        }
+    }
+    let edges: Vec<([f32; 3], [f32; 3])> = keys
+        .iter()
+        .map(|&k| {
+            let (lin, dir) = (k / 8, k % 8);
+            let start = [lin % pitch[1], (lin / pitch[1]) % (pitch[2] / pitch[1]), lin / pitch[2]].map(|x| x as f32);
+            let d = [0, 1, 2].map(|a| ((dir >> a) & 1) as f32);
+            (start, d)
+        })
+        .collect();
+    let mut next = lattice.to_vec();
+    for _ in 0..iterations {
+        next.par_iter_mut().enumerate().for_each(|(v, out)| {
+            let ring = &adj[count[v] as usize..count[v + 1] as usize];
+            if ring.is_empty() {
+                return;
+            }
+            let mut mean = [0f32; 3];
+            for &u in ring {
+                for a in 0..3 {
+                    mean[a] += lattice[u as usize][a];
+                }
+            }
+            let (start, d) = edges[v];
+            let target = [0, 1, 2].map(|a| 0.5 * (lattice[v][a] + mean[a] / ring.len() as f32));
+            let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            let t = (0..3).map(|a| (target[a] - start[a]) * d[a]).sum::<f32>() / d2;
+            let t = t.clamp(EDGE_MARGIN, 1.0 - EDGE_MARGIN);
+            *out = [0, 1, 2].map(|a| start[a] + t * d[a]);
+        });
+        lattice.copy_from_slice(&next);
+    }
 }
 
 /// Does the cell block `cb` (cells `[8 cb, 8 cb + 8)`) possibly hold surface?
@@ -323,6 +411,102 @@ fn box_pass(src: &[u32], ext: [usize; 3], axis: usize, w: usize) -> Vec<u32> {
     out
 }
 
+/// The connected component of each triangle (triangles sharing a vertex; `u32::MAX` for a triangle
+/// with an index out of range) and the volume each component encloses (divergence theorem, m³).
+fn components(mesh: &TriangleMesh) -> (Vec<u32>, HashMap<u32, f64>) {
+    let n = mesh.vertices.len();
+    let mut parent: Vec<u32> = (0..n as u32).collect();
+    fn find(parent: &mut [u32], mut x: u32) -> u32 {
+        while parent[x as usize] != x {
+            let up = parent[parent[x as usize] as usize];
+            parent[x as usize] = up;
+            x = up;
+        }
+        x
+    }
+    let valid = |t: &[u32; 3]| t.iter().all(|&i| (i as usize) < n);
+    for t in mesh.triangles.iter().filter(|t| valid(t)) {
+        let a = find(&mut parent, t[0]);
+        for &v in &t[1..] {
+            let b = find(&mut parent, v);
+            if a != b {
+                parent[b as usize] = a;
+            }
+        }
+    }
+    let mut volume: HashMap<u32, f64> = HashMap::new();
+    let mut comp = Vec::with_capacity(mesh.triangles.len());
+    for t in &mesh.triangles {
+        if !valid(t) {
+            comp.push(u32::MAX);
+            continue;
+        }
+        let c = find(&mut parent, t[0]);
+        let [a, b, d] = t.map(|i| mesh.vertices[i as usize].map(f64::from));
+        let v = (a[0] * (b[1] * d[2] - b[2] * d[1]) - a[1] * (b[0] * d[2] - b[2] * d[0])
+            + a[2] * (b[0] * d[1] - b[1] * d[0]))
+            / 6.0;
+        *volume.entry(c).or_insert(0.0) += v;
+        comp.push(c);
+    }
+    (comp, volume)
+}
+
+/// The topology of a mesh, for reports.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct MeshTopology {
+    /// Triangles.
+    pub triangles: usize,
+    /// Vertices used by a triangle.
+    pub vertices: usize,
+    /// Undirected edges.
+    pub edges: usize,
+    /// Connected components (triangles sharing a vertex).
+    pub components: usize,
+    /// Components enclosing negative volume: the walls of internal cavities (outward normals).
+    pub cavities: usize,
+    /// Directed edges without exactly one opposite partner: 0 for a closed, consistently oriented mesh.
+    pub open_or_misoriented_edges: usize,
+    /// Euler characteristic V - E + F (2 for one closed surface without handles).
+    pub euler_characteristic: i64,
+    /// Handles (tunnels) of a single closed component, `(2 - euler_characteristic) / 2`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub genus: Option<i64>,
+}
+
+impl TriangleMesh {
+    /// Components, cavities, open edges, Euler characteristic and genus (see [`MeshTopology`]).
+    pub fn topology(&self) -> MeshTopology {
+        let mut used = vec![false; self.vertices.len()];
+        let mut edges: Vec<(u32, u32)> = Vec::with_capacity(self.triangles.len() * 3);
+        for t in &self.triangles {
+            for e in 0..3 {
+                if let Some(u) = used.get_mut(t[e] as usize) {
+                    *u = true;
+                }
+                let (a, b) = (t[e], t[(e + 1) % 3]);
+                edges.push((a.min(b), a.max(b)));
+            }
+        }
+        edges.par_sort_unstable();
+        edges.dedup();
+        let (_, volume) = components(self);
+        let vertices = used.iter().filter(|&&u| u).count();
+        let euler = vertices as i64 - edges.len() as i64 + self.triangles.len() as i64;
+        let open = self.open_or_misoriented_edges();
+        MeshTopology {
+            triangles: self.triangles.len(),
+            vertices,
+            edges: edges.len(),
+            components: volume.len(),
+            cavities: volume.values().filter(|&&v| v < 0.0).count(),
+            open_or_misoriented_edges: open,
+            euler_characteristic: euler,
+            genus: (volume.len() == 1 && open == 0).then_some((2 - euler) / 2),
+        }
+    }
+}
+
 /// What [`keep_main_component`] did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
 pub struct MeshCleanStats {
@@ -344,41 +528,7 @@ pub struct MeshCleanStats {
 /// cavities. Vertices keep their order (unused ones are dropped), as do colours.
 pub fn keep_main_component(mesh: &TriangleMesh) -> (TriangleMesh, MeshCleanStats) {
     let n = mesh.vertices.len();
-    let mut parent: Vec<u32> = (0..n as u32).collect();
-    fn find(parent: &mut [u32], mut x: u32) -> u32 {
-        while parent[x as usize] != x {
-            let up = parent[parent[x as usize] as usize];
-            parent[x as usize] = up;
-            x = up;
-        }
-        x
-    }
-    let valid = |t: &[u32; 3]| t.iter().all(|&i| (i as usize) < n);
-    for t in mesh.triangles.iter().filter(|t| valid(t)) {
-        let a = find(&mut parent, t[0]);
-        for &v in &t[1..] {
-            let b = find(&mut parent, v);
-            if a != b {
-                parent[b as usize] = a;
-            }
-        }
-    }
-    // Component of each triangle and each component's enclosed volume.
-    let mut volume: HashMap<u32, f64> = HashMap::new();
-    let mut comp = Vec::with_capacity(mesh.triangles.len());
-    for t in &mesh.triangles {
-        if !valid(t) {
-            comp.push(u32::MAX);
-            continue;
-        }
-        let c = find(&mut parent, t[0]);
-        let [a, b, d] = t.map(|i| mesh.vertices[i as usize].map(f64::from));
-        let v = (a[0] * (b[1] * d[2] - b[2] * d[1]) - a[1] * (b[0] * d[2] - b[2] * d[0])
-            + a[2] * (b[0] * d[1] - b[1] * d[0]))
-            / 6.0;
-        *volume.entry(c).or_insert(0.0) += v;
-        comp.push(c);
-    }
+    let (comp, volume) = components(mesh);
     let mut stats = MeshCleanStats { components: volume.len(), ..MeshCleanStats::default() };
     let Some((&main, _)) = volume.iter().max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(a.0))) else {
         return (TriangleMesh { colors: mesh.colors.clone(), ..TriangleMesh::default() }, stats);
@@ -430,7 +580,7 @@ mod tests {
     fn sphere_mesh_is_closed_oriented_and_has_the_right_volume() {
         for r in [0, 1, 2] {
             let occ = sphere(40, 0.6);
-            let mesh = extract_surface(&occ, &MeshParams { smooth_radius: r }).expect("mesh");
+            let mesh = extract_surface(&occ, &MeshParams { smooth_radius: r, relax_iterations: 0 }).expect("mesh");
             assert!(!mesh.triangles.is_empty());
             assert_eq!(mesh.open_or_misoriented_edges(), 0, "radius {r}");
             let v = mesh.signed_volume();
@@ -441,15 +591,42 @@ mod tests {
     }
 
     #[test]
+    fn relaxation_leaves_the_stairs_for_sub_voxel_positions_on_their_edges() {
+        let occ = sphere(40, 0.6);
+        let centre = Vector3::new(0.05, -0.1, 0.0);
+        let stairs = extract_surface(&occ, &MeshParams { smooth_radius: 0, relax_iterations: 0 }).expect("mesh");
+        let relaxed = extract_surface(&occ, &MeshParams::smoothed(0)).expect("mesh");
+        assert_eq!(stairs.triangles, relaxed.triangles, "relaxation moves vertices only");
+        assert_eq!(relaxed.topology().open_or_misoriented_edges, 0);
+        assert_eq!((relaxed.topology().components, relaxed.topology().euler_characteristic), (1, 2));
+        let rms = |m: &TriangleMesh| {
+            let sum: f64 = m
+                .vertices
+                .iter()
+                .map(|v| ((Vector3::new(v[0] as f64, v[1] as f64, v[2] as f64) - centre).norm() - 0.6).powi(2))
+                .sum();
+            (sum / m.vertices.len() as f64).sqrt()
+        };
+        let voxel = occ.grid().voxel_size;
+        let (before, after) = (rms(&stairs), rms(&relaxed));
+        assert!(after < 0.6 * before, "radial error {after} vs {before} on the stairs (voxel {voxel})");
+        // Every vertex stays on its lattice edge: within half a diagonal of the stairs' vertex.
+        for (a, b) in stairs.vertices.iter().zip(&relaxed.vertices) {
+            let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt() as f64;
+            assert!(d <= 0.5 * 3f64.sqrt() * voxel + 1e-6, "moved {d}");
+        }
+    }
+
+    #[test]
     fn object_touching_the_grid_border_is_closed_by_the_padding() {
         let g = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [1.0; 3] }, 19);
         let occ = Occupancy::from_fn(g, |p| p.x < 0.7 || (p.y - 0.5).abs() < 0.1);
-        let mesh = extract_surface(&occ, &MeshParams { smooth_radius: 1 }).expect("mesh");
+        let mesh = extract_surface(&occ, &MeshParams { smooth_radius: 1, relax_iterations: 0 }).expect("mesh");
         assert_eq!(mesh.open_or_misoriented_edges(), 0);
         assert!(mesh.signed_volume() > 0.0);
         let full = extract_surface(&Occupancy::full(g), &MeshParams::default()).expect("mesh");
         assert_eq!(full.open_or_misoriented_edges(), 0);
-        assert!(extract_surface(&occ, &MeshParams { smooth_radius: 99 }).is_err());
+        assert!(extract_surface(&occ, &MeshParams { smooth_radius: 99, relax_iterations: 0 }).is_err());
     }
 
     #[test]

@@ -21,6 +21,7 @@ pub mod coloring;
 pub mod depth_fusion;
 pub mod display;
 pub mod export;
+pub mod hausdorff;
 pub mod laser;
 pub mod light_calibration;
 pub mod mesh;
@@ -29,6 +30,7 @@ pub mod photo_consistency;
 pub mod shadow_carving;
 pub mod shadows;
 pub mod silhouette;
+pub mod simplify;
 pub mod space_carving;
 pub mod structured_light;
 pub mod voxel_coloring;
@@ -40,7 +42,10 @@ pub use cloud::{
 pub use coloring::{color_vertices, ColorView};
 pub use depth_fusion::{DepthFusionError, FusionParams, IntegrateStats, Tsdf};
 pub use export::ExportError;
-pub use mesh::{extract_surface, keep_main_component, MeshCleanStats, MeshError, MeshParams, TriangleMesh};
+pub use hausdorff::{hausdorff_distance, Hausdorff, TriangleIndex};
+pub use mesh::{
+    extract_surface, keep_main_component, MeshCleanStats, MeshError, MeshParams, MeshTopology, TriangleMesh,
+};
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
 pub use photo_consistency::{image_noise_sigma, ItemBuffer, PhotoError, PhotoNoise, PhotoParams, PhotoView};
 pub use shadow_carving::{
@@ -48,6 +53,7 @@ pub use shadow_carving::{
 };
 pub use shadows::{detect_shadows, ShadowError, ShadowMaps, ShadowParams};
 pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
+pub use simplify::{simplify, simplify_within, Simplification, SimplifyParams, SimplifyStats};
 pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
 pub use voxel_coloring::{
     carve_photo, color_voxels, color_voxels_sweeps, colour_surface, measure_noise, ordinal_sweeps, reprojection_error,

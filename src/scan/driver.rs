@@ -206,6 +206,7 @@ pub(crate) fn drive<F: ScanFlow>(mut flow: F, job: Job<'_>, world: Option<SimWor
         method,
         reprocessed_from,
         outcome,
+        mesh_max_error_voxels: config.reconstruction.mesh.max_error_voxels,
         truth: world.as_ref().zip(truth_occupancy.as_ref()).map(|(w, occ)| output::TruthRef {
             scene: w.scene(),
             scene_name: config.sim.as_ref().map_or("", |s| s.scene.as_str()),

@@ -26,7 +26,10 @@ use crate::acquisition::AcquisitionSummary;
 use crate::atomic::{is_atomic_temp, write_atomic};
 use crate::config::{Method, RigConfig};
 use crate::pipeline::export;
-use crate::pipeline::{keep_main_component, reprojection_iou, Occupancy, View};
+use crate::pipeline::{keep_main_component, reprojection_iou, simplify_within, Occupancy, View};
+
+/// Area samples per surface (besides its vertices) for the Hausdorff distance of the simplified mesh.
+const HAUSDORFF_SAMPLES: usize = 100_000;
 
 /// The files of an earlier result that [`OutputDir::prepare`] removes (`report.json` first).
 const RESULT_FILES: [&str; 6] = ["model.ply", "model.stl", "model.obj", "voxels.ply", "cloud.ply", "rig.toml"];
@@ -58,6 +61,9 @@ pub struct Results<'a> {
     pub reprocessed_from: Option<String>,
     /// What the method produced.
     pub outcome: Outcome,
+    /// Error bound of the mesh simplification, voxel edges (`[reconstruction.mesh] max_error_voxels`;
+    /// 0 = none).
+    pub mesh_max_error_voxels: f64,
     /// The simulated truth (simulated rigs only).
     pub truth: Option<TruthRef<'a>>,
     /// Acquisition counters (scans only).
@@ -186,6 +192,7 @@ impl OutputDir {
             method,
             reprocessed_from,
             outcome,
+            mesh_max_error_voxels,
             truth,
             frames,
             mut timings,
@@ -205,12 +212,27 @@ impl OutputDir {
             details,
         } = outcome;
 
-        // One watertight surface: parts floating apart from the main one and internal cavities go.
+        // One watertight surface: parts floating apart from the main one and internal cavities go;
+        // then it is simplified within the error bound, checked by its Hausdorff distance.
         let t = Instant::now();
         let (mesh, mesh_cleanup) = keep_main_component(&mesh);
-        timings.mesh += t.elapsed().as_secs_f64();
         if mesh_cleanup.triangles_removed > 0 {
             tracing::info!(?mesh_cleanup, "mesh cleaned to its main component");
+        }
+        let max_error_m = mesh_max_error_voxels * solid.grid().voxel_size;
+        let (mesh, mesh_simplification) = match simplify_within(&mesh, max_error_m, HAUSDORFF_SAMPLES) {
+            Some((simple, s)) => (simple, Some(s)),
+            None => (mesh, None),
+        };
+        let mesh_topology = mesh.topology();
+        timings.mesh += t.elapsed().as_secs_f64();
+        if let Some(s) = &mesh_simplification {
+            tracing::info!(
+                before = s.stats.triangles_before,
+                after = s.stats.triangles_after,
+                hausdorff_m = s.hausdorff.symmetric_m,
+                "mesh simplified"
+            );
         }
 
         events(ScanEvent::Stage("export"));
@@ -274,6 +296,8 @@ impl OutputDir {
             volume_m3: solid.volume_m3(),
             mesh_triangles: mesh.triangles.len(),
             mesh_cleanup,
+            mesh_simplification,
+            mesh_topology,
             timings_s: timings,
             reprojection_iou: reprojection,
             reprojection_iou_mean: mean,

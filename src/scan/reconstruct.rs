@@ -29,6 +29,9 @@ pub struct ReconstructOptions {
     pub bbox: Option<Aabb>,
     /// Occupancy smoothing radius for the mesh, voxels.
     pub smooth_radius: u32,
+    /// Error bound of the mesh simplification, voxel edges (0 = none; see
+    /// [`crate::config::MeshConfig::max_error_voxels`]).
+    pub mesh_max_error_voxels: f64,
     /// The photo-consistency test (`voxel-coloring`, `space-carving-photo`).
     pub photo: crate::config::PhotoConfig,
     /// Output directory.
@@ -120,6 +123,7 @@ pub fn run_reconstruct(
         method: opts.method,
         reprocessed_from: None,
         outcome,
+        mesh_max_error_voxels: opts.mesh_max_error_voxels,
         truth: None,
         frames: None,
         timings,

@@ -32,6 +32,13 @@ pub struct Report {
     /// What the mesh clean-up removed to leave one watertight component (floating parts, internal
     /// cavities); `mesh_triangles` counts what is left.
     pub mesh_cleanup: crate::pipeline::MeshCleanStats,
+    /// The quadric simplification of the cleaned mesh: error bound, triangles before and after, and
+    /// the sampled symmetric Hausdorff distance between the simplified and the unsimplified surface
+    /// (absent when `[reconstruction.mesh] max_error_voxels = 0`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mesh_simplification: Option<crate::pipeline::Simplification>,
+    /// The exported mesh's topology: components, cavities, open edges, Euler characteristic, genus.
+    pub mesh_topology: crate::pipeline::MeshTopology,
     /// Wall-clock time per stage, seconds.
     pub timings_s: Timings,
     /// Silhouette re-projection IoU per view (voxel footprints splatted), in view order.

@@ -184,8 +184,7 @@ impl ScanFlow for DepthFlow {
         events(ScanEvent::Stage("mesh"));
         let t = Instant::now();
         let solid = self.tsdf.occupancy();
-        let mut mesh =
-            extract_surface(&solid, &MeshParams { smooth_radius: self.smooth_radius }).map_err(ScanError::Mesh)?;
+        let mut mesh = extract_surface(&solid, &MeshParams::smoothed(self.smooth_radius)).map_err(ScanError::Mesh)?;
         let refined_vertices = self.tsdf.refine_vertices(&mut mesh);
         timings.mesh = t.elapsed().as_secs_f64();
         let hull = self.hull.into_occupancy();

@@ -273,8 +273,7 @@ impl ScanFlow for ShadowFlow {
         tracing::info!(removed, rounds = stats.sweeps, seconds = carve_s, "shadow carving done");
         events(ScanEvent::Stage("mesh"));
         let t = Instant::now();
-        let mesh =
-            extract_surface(&carved, &MeshParams { smooth_radius: self.smooth_radius }).map_err(ScanError::Mesh)?;
+        let mesh = extract_surface(&carved, &MeshParams::smoothed(self.smooth_radius)).map_err(ScanError::Mesh)?;
         timings.mesh = t.elapsed().as_secs_f64();
         let hull_summary = VisualHull {
             iou: None,

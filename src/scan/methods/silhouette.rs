@@ -161,7 +161,8 @@ pub(crate) fn outcome_from_hull(
     if !method.is_photo() {
         events(ScanEvent::Stage("mesh"));
         let t = Instant::now();
-        let mesh = extract_surface(carver.occupancy(), &MeshParams { smooth_radius }).map_err(ScanError::Mesh)?;
+        let mesh =
+            extract_surface(carver.occupancy(), &MeshParams::smoothed(smooth_radius)).map_err(ScanError::Mesh)?;
         timings.mesh = t.elapsed().as_secs_f64();
         return Ok(Outcome {
             views: count,
@@ -188,7 +189,7 @@ pub(crate) fn outcome_from_hull(
     timings.carve += t.elapsed().as_secs_f64();
     events(ScanEvent::Stage("mesh"));
     let t = Instant::now();
-    let mut mesh = extract_surface(&solid, &MeshParams { smooth_radius }).map_err(ScanError::Mesh)?;
+    let mut mesh = extract_surface(&solid, &MeshParams::smoothed(smooth_radius)).map_err(ScanError::Mesh)?;
     mesh.colors = Some(outputs.mesh_colours(&mesh));
     timings.mesh = t.elapsed().as_secs_f64();
     let voxel_colours = Some(outputs.voxel_colours(&solid));

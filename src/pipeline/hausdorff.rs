@@ -1,0 +1,252 @@
+//! Sampled Hausdorff distance between two triangle surfaces, point-to-triangle exact.
+//!
+//! Each surface is sampled at its vertices plus area-uniform points ([`super::chamfer::sample_mesh`]);
+//! each sample's distance to the other surface is the exact distance to its nearest triangle, found
+//! through a uniform grid of triangle bounding boxes searched in growing shells of cells. The
+//! directed distance is the largest over the samples (a lower bound of the true directed Hausdorff
+//! distance that converges as the samples grow dense), the symmetric one the larger of both.
+
+use std::collections::HashMap;
+
+use rayon::prelude::*;
+
+use super::chamfer::sample_mesh;
+use super::mesh::TriangleMesh;
+
+/// A sampled symmetric Hausdorff distance, metres.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct Hausdorff {
+    /// Largest distance from a sample of the first surface to the second.
+    pub forward_m: f64,
+    /// Largest distance from a sample of the second surface to the first.
+    pub backward_m: f64,
+    /// The larger of both.
+    pub symmetric_m: f64,
+    /// Mean distance over the samples of both directions.
+    pub mean_m: f64,
+    /// Samples per direction: the surface's vertices plus its area samples.
+    pub samples: [usize; 2],
+}
+
+/// Nearest-triangle queries over one mesh (module docs).
+#[derive(Debug)]
+pub struct TriangleIndex<'a> {
+    mesh: &'a TriangleMesh,
+    cell: f64,
+    origin: [f64; 3],
+    cells: HashMap<[i32; 3], Vec<u32>>,
+    /// Cell index range holding any triangle.
+    lo: [i32; 3],
+    hi: [i32; 3],
+}
+
+impl<'a> TriangleIndex<'a> {
+    /// Index the triangles of `mesh` (those with indices out of range are left out); `None` when none is left.
+    pub fn new(mesh: &'a TriangleMesh) -> Option<TriangleIndex<'a>> {
+        let n = mesh.vertices.len();
+        let tris: Vec<u32> = (0..mesh.triangles.len() as u32)
+            .filter(|&t| mesh.triangles[t as usize].iter().all(|&i| (i as usize) < n))
+            .collect();
+        if tris.is_empty() {
+            return None;
+        }
+        // Cell edge: twice the mean bounding-box extent of a triangle, so a triangle spans few cells.
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        let mut extent = 0.0;
+        for &t in &tris {
+            let (a, b) = bbox(mesh, t);
+            for k in 0..3 {
+                lo[k] = lo[k].min(a[k]);
+                hi[k] = hi[k].max(b[k]);
+                extent += b[k] - a[k];
+            }
+        }
+        let span = (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max);
+        let cell = (2.0 * extent / (3 * tris.len()) as f64).max(span / 512.0).max(1e-9);
+        let mut index = TriangleIndex { mesh, cell, origin: lo, cells: HashMap::new(), lo: [0; 3], hi: [0; 3] };
+        let mut clo = [i32::MAX; 3];
+        let mut chi = [i32::MIN; 3];
+        for &t in &tris {
+            let (a, b) = bbox(mesh, t);
+            let (ca, cb) = (index.cell_of(a), index.cell_of(b));
+            for k in 0..3 {
+                clo[k] = clo[k].min(ca[k]);
+                chi[k] = chi[k].max(cb[k]);
+            }
+            for z in ca[2]..=cb[2] {
+                for y in ca[1]..=cb[1] {
+                    for x in ca[0]..=cb[0] {
+                        index.cells.entry([x, y, z]).or_default().push(t);
+                    }
+                }
+            }
+        }
+        index.lo = clo;
+        index.hi = chi;
+        Some(index)
+    }
+
+    fn cell_of(&self, p: [f64; 3]) -> [i32; 3] {
+        [0, 1, 2].map(|k| ((p[k] - self.origin[k]) / self.cell).floor().clamp(-1e9, 1e9) as i32)
+    }
+
+    /// Distance from `q` to the nearest triangle, metres.
+    pub fn distance(&self, q: [f64; 3]) -> f64 {
+        let c = self.cell_of(q);
+        let mut best = f64::INFINITY;
+        // Shells of cells around q's cell; after shell r every unvisited cell is at least r cells away.
+        let reach = (0..3).map(|k| (c[k] - self.lo[k]).abs().max((self.hi[k] - c[k]).abs())).max().unwrap_or(0);
+        for r in 0..=reach {
+            for z in c[2] - r..=c[2] + r {
+                for y in c[1] - r..=c[1] + r {
+                    for x in c[0] - r..=c[0] + r {
+                        let on_shell = (x - c[0]).abs() == r || (y - c[1]).abs() == r || (z - c[2]).abs() == r;
+                        if !on_shell {
+                            continue;
+                        }
+                        if let Some(ts) = self.cells.get(&[x, y, z]) {
+                            for &t in ts {
+                                let tri = self.mesh.triangles[t as usize]
+                                    .map(|i| self.mesh.vertices[i as usize].map(f64::from));
+                                best = best.min(point_triangle_distance2(q, &tri));
+                            }
+                        }
+                    }
+                }
+            }
+            // Every cell not yet searched lies beyond the searched block's faces.
+            let margin = (0..3)
+                .map(|k| {
+                    let lo = self.origin[k] + f64::from(c[k] - r) * self.cell;
+                    let hi = self.origin[k] + f64::from(c[k] + r + 1) * self.cell;
+                    (q[k] - lo).min(hi - q[k])
+                })
+                .fold(f64::INFINITY, f64::min);
+            if best.is_finite() && best.sqrt() <= margin {
+                break;
+            }
+        }
+        best.sqrt()
+    }
+}
+
+/// The sampled symmetric Hausdorff distance between `a` and `b` (module docs), with `samples` area
+/// samples per surface besides its vertices; `None` when either has no triangle.
+pub fn hausdorff_distance(a: &TriangleMesh, b: &TriangleMesh, samples: usize) -> Option<Hausdorff> {
+    let (ia, ib) = (TriangleIndex::new(a)?, TriangleIndex::new(b)?);
+    let directed = |from: &TriangleMesh, to: &TriangleIndex<'_>, seed: u64| -> (f64, f64, usize) {
+        let mut pts: Vec<[f32; 3]> = from.vertices.clone();
+        pts.extend(sample_mesh(from, samples, seed));
+        let d: Vec<f64> = pts.par_iter().map(|p| to.distance(p.map(f64::from))).collect();
+        let max = d.iter().copied().fold(0.0, f64::max);
+        (max, d.iter().sum::<f64>(), d.len())
+    };
+    let (f, fs, fn_) = directed(a, &ib, 11);
+    let (g, gs, gn) = directed(b, &ia, 12);
+    Some(Hausdorff {
+        forward_m: f,
+        backward_m: g,
+        symmetric_m: f.max(g),
+        mean_m: (fs + gs) / (fn_ + gn).max(1) as f64,
+        samples: [fn_, gn],
+    })
+}
+
+fn bbox(mesh: &TriangleMesh, t: u32) -> ([f64; 3], [f64; 3]) {
+    let tri = mesh.triangles[t as usize].map(|i| mesh.vertices[i as usize]);
+    let lo = [0, 1, 2].map(|k| f64::from(tri[0][k].min(tri[1][k]).min(tri[2][k])));
+    let hi = [0, 1, 2].map(|k| f64::from(tri[0][k].max(tri[1][k]).max(tri[2][k])));
+    (lo, hi)
+}
+
+/// Squared distance from `p` to the triangle `t` (Ericson, "Real-Time Collision Detection", 5.1.5).
+pub fn point_triangle_distance2(p: [f64; 3], t: &[[f64; 3]; 3]) -> f64 {
+    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let [a, b, c] = *t;
+    let (ab, ac, ap) = (sub(b, a), sub(c, a), sub(p, a));
+    let d2 = |q: [f64; 3]| {
+        let v = sub(p, q);
+        dot(v, v)
+    };
+    let lerp = |x: [f64; 3], y: [f64; 3], s: f64| [0, 1, 2].map(|k| x[k] + s * (y[k] - x[k]));
+    let (d1, d2_) = (dot(ab, ap), dot(ac, ap));
+    if d1 <= 0.0 && d2_ <= 0.0 {
+        return d2(a);
+    }
+    let bp = sub(p, b);
+    let (d3, d4) = (dot(ab, bp), dot(ac, bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return d2(b);
+    }
+    let vc = d1 * d4 - d3 * d2_;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return d2(lerp(a, b, d1 / (d1 - d3)));
+    }
+    let cp = sub(p, c);
+    let (d5, d6) = (dot(ab, cp), dot(ac, cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return d2(c);
+    }
+    let vb = d5 * d2_ - d1 * d6;
+    if vb <= 0.0 && d2_ >= 0.0 && d6 <= 0.0 {
+        return d2(lerp(a, c, d2_ / (d2_ - d6)));
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        return d2(lerp(b, c, (d4 - d3) / ((d4 - d3) + (d5 - d6))));
+    }
+    let denom = 1.0 / (va + vb + vc);
+    let (v, w) = (vb * denom, vc * denom);
+    d2([0, 1, 2].map(|k| a[k] + ab[k] * v + ac[k] * w))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An axis-aligned cube of edge `s` centred at `c`, 12 outward triangles.
+    fn cube(c: [f32; 3], s: f32) -> TriangleMesh {
+        let h = s / 2.0;
+        let vertices = (0..8).map(|n| [0, 1, 2].map(|k| c[k] + if (n >> k) & 1 == 1 { h } else { -h })).collect();
+        let quads = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]];
+        let triangles = quads.iter().flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]).collect();
+        TriangleMesh { vertices, triangles, colors: None }
+    }
+
+    #[test]
+    fn point_triangle_distance_in_every_region() {
+        let t = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+        let cases = [
+            ([0.2, 0.2, 0.5], 0.25),
+            ([-1.0, -1.0, 0.0], 2.0),
+            ([2.0, 0.0, 0.0], 1.0),
+            ([0.5, -2.0, 0.0], 4.0),
+            ([1.0, 1.0, 0.0], 0.5),
+            ([-3.0, 0.5, 1.0], 10.0),
+        ];
+        for (p, d2) in cases {
+            assert!((point_triangle_distance2(p, &t) - d2).abs() < 1e-12, "{p:?}");
+        }
+    }
+
+    #[test]
+    fn nested_cubes_are_half_the_edge_difference_apart() {
+        let outer = cube([0.1, -0.2, 0.3], 2.0);
+        let inner = cube([0.1, -0.2, 0.3], 1.0);
+        let h = hausdorff_distance(&outer, &inner, 5_000).expect("distance");
+        // The outer cube's corners are sqrt(3)/2 from the inner one's corners; every inner point is
+        // 0.5 from the outer surface.
+        assert!((h.forward_m - 0.75f64.sqrt()).abs() < 1e-5, "{h:?}");
+        assert!((h.backward_m - 0.5).abs() < 1e-5, "{h:?}");
+        assert_eq!(h.symmetric_m, h.forward_m);
+        assert_eq!(h.samples, [5_008, 5_008]);
+        let same = hausdorff_distance(&outer, &outer, 1_000).expect("distance");
+        assert!(same.symmetric_m < 1e-6);
+        let shifted = cube([0.1, -0.2, 0.35], 2.0);
+        let s = hausdorff_distance(&outer, &shifted, 5_000).expect("distance");
+        assert!((s.symmetric_m - 0.05).abs() < 1e-5, "{s:?}");
+        assert!(hausdorff_distance(&outer, &TriangleMesh::default(), 10).is_none());
+    }
+}
