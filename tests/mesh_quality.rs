@@ -63,17 +63,26 @@ fn every_methods_mesh_is_one_closed_simplified_component() {
         // Space carving: the relaxed visual hull of the cup.
         (
             "config/rigs/simulated.toml",
-            vec![("resolution = 128", "resolution = 64"), ("positions = 24", "positions = 12")],
+            vec![
+                ("resolution = 128", "resolution = 64\n\n[reconstruction.mesh]\nmax_error_voxels = 0.25"),
+                ("positions = 24", "positions = 12"),
+            ],
         ),
         // Voxel colouring: hundreds of floating blobs and cavities before the clean-up.
         (
             "config/rigs/voxel-coloring.toml",
-            vec![("resolution = 128", "resolution = 48"), ("positions = 36", "positions = 12")],
+            vec![
+                ("resolution = 128", "resolution = 48\n\n[reconstruction.mesh]\nmax_error_voxels = 0.25"),
+                ("positions = 36", "positions = 12"),
+            ],
         ),
         // Structured light (phase shift): TSDF surface with floating blobs.
         (
             "config/rigs/structured-light-phase.toml",
-            vec![("resolution = 128", "resolution = 64"), ("positions = 16", "positions = 6")],
+            vec![
+                ("resolution = 128", "resolution = 64\n\n[reconstruction.mesh]\nmax_error_voxels = 0.25"),
+                ("positions = 16", "positions = 6"),
+            ],
         ),
     ] {
         let dir = tempfile::tempdir().expect("tempdir");
@@ -87,7 +96,7 @@ fn every_methods_mesh_is_one_closed_simplified_component() {
         let s = &report["mesh_simplification"];
         let voxel = report["voxel_size_m"].as_f64().expect("voxel size");
         let bound = s["max_error_m"].as_f64().expect("bound");
-        assert!((bound - 0.25 * voxel).abs() < 1e-12, "{base}: default bound is a quarter voxel: {s}");
+        assert!((bound - 0.25 * voxel).abs() < 1e-12, "{base}: the bound asked for is a quarter voxel: {s}");
         let hausdorff = s["hausdorff"]["symmetric_m"].as_f64().expect("hausdorff");
         assert!(hausdorff <= bound, "{base}: Hausdorff {hausdorff} above the bound {bound}");
         let (before, after) = (s["triangles_before"].as_u64().expect("n"), s["triangles_after"].as_u64().expect("n"));
@@ -99,17 +108,14 @@ fn every_methods_mesh_is_one_closed_simplified_component() {
     }
 }
 
-/// `max_error_voxels = 0` turns the simplification off; the clean-up still runs.
+/// Without `max_error_voxels` (default 0) nothing is simplified; the clean-up still runs.
 #[test]
-fn simplification_can_be_turned_off() {
+fn simplification_is_off_by_default() {
     let dir = tempfile::tempdir().expect("tempdir");
     let rig = derived_rig(
         dir.path(),
         "config/rigs/simulated.toml",
-        &[
-            ("resolution = 128", "resolution = 40\n\n[reconstruction.mesh]\nmax_error_voxels = 0.0"),
-            ("positions = 24", "positions = 8"),
-        ],
+        &[("resolution = 128", "resolution = 40"), ("positions = 24", "positions = 8")],
     );
     let report = run_scan(&rig, &dir.path().join("out"));
     assert!(report.get("mesh_simplification").is_none(), "{}", report["mesh_simplification"]);
