@@ -359,10 +359,13 @@ fn prime(
             stream.push(b);
             if complete {
                 let mut frames = 1;
-                if tries > 1 {
-                    // An earlier trigger's frame may still be on its way: let it land here, not
-                    // after a capture's drain, where it would pass for a fresh one.
-                    while let Some(late) = stream.pop(step) {
+                if trigger == TriggerMode::Software && tries > 1 {
+                    // An earlier trigger's frame may still be on its way: let it land here (for
+                    // one more step at most), not after a capture's drain, where it would pass
+                    // for a fresh one. In free run frames never stop coming, and a capture
+                    // drops the stale ones by their timestamps, so there is nothing to wait for.
+                    let until = Instant::now() + step;
+                    while let Some(late) = stream.pop(until.saturating_duration_since(Instant::now())) {
                         frames += u64::from(late.status() == BUFFER_STATUS_SUCCESS);
                         stream.push(late);
                     }
