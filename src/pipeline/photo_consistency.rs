@@ -254,6 +254,13 @@ pub(crate) struct VoxelCamera {
     pub(crate) centre: [f32; 3],
     origin: [f32; 3],
     size: f32,
+    /// Whether any lens term is non-zero (without one, projection skips the lens polynomial, which
+    /// would leave every coordinate unchanged).
+    distorted: bool,
+    /// Camera-frame centre of voxel (0, 0, 0), metres.
+    base: [f32; 3],
+    /// Camera-frame step of one voxel along grid axis `a` (`axis[a]`), metres.
+    axis: [[f32; 3]; 3],
 }
 
 /// A footprint: the voxel centre's camera depth (metres) and the pixel rectangle `[x0, x1) x [y0, y1)`.
@@ -291,7 +298,36 @@ impl VoxelCamera {
             centre: [c.x as f32, c.y as f32, c.z as f32],
             origin: grid.origin.map(|x| x as f32),
             size: grid.voxel_size as f32,
+            distorted: [i.k1, i.k2, i.k3, i.p1, i.p2].iter().any(|&k| k != 0.0),
+            base: {
+                let p = [0, 1, 2].map(|a| grid.origin[a] + 0.5 * grid.voxel_size);
+                [0, 1, 2]
+                    .map(|a| (0..3).map(|b| rot[(a, b)] * p[b]).sum::<f64>() + camera.pose.translation[a])
+                    .map(|x| x as f32)
+            },
+            axis: [0, 1, 2].map(|b| [0, 1, 2].map(|a| (rot[(a, b)] * grid.voxel_size) as f32)),
         }
+    }
+
+    /// Camera-frame coordinates (metres) of voxel `v`'s centre, from the per-axis steps.
+    #[inline]
+    fn camera_frame(&self, v: [u32; 3]) -> [f32; 3] {
+        let f = v.map(|x| x as f32);
+        [0, 1, 2].map(|a| self.base[a] + f[0] * self.axis[0][a] + f[1] * self.axis[1][a] + f[2] * self.axis[2][a])
+    }
+
+    /// Continuous pixel coordinates of camera-frame point `(x, y, z)` (`z > 0`).
+    #[inline]
+    fn image_of(&self, x: f32, y: f32, z: f32) -> (f32, f32) {
+        let (mut x, mut y) = (x / z, y / z);
+        if self.distorted {
+            let r2 = x * x + y * y;
+            let f = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
+            let xd = x * f + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
+            let yd = y * f + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
+            (x, y) = (xd, yd);
+        }
+        (self.fx * x + self.skew * y + self.cx, self.fy * y + self.cy)
     }
 
     /// Centre of voxel `v` at fractional offset `f` (voxel units, 0 = centre), grid frame, metres.
@@ -360,22 +396,61 @@ impl VoxelCamera {
         self.footprint_of_cube(v, 0.5)
     }
 
+    /// The camera depth (metres) and continuous pixel coordinates of the centre of voxel `v`, and
+    /// the bounding rectangle `[u0, u1] x [v0, v1]` (continuous pixels) of the corners of the cube
+    /// of half-edge `half` (voxel units) centred on it, with the centre's image; `None` when a
+    /// corner is behind the camera.
+    ///
+    /// The corners are the centre's camera-frame point plus or minus `half` of each axis step
+    /// (computed once per camera), so one voxel costs one small affine map and nine divisions.
+    #[inline]
+    fn cube_rect(&self, v: [u32; 3], half: f32) -> Option<(f32, f32, f32, [f32; 4])> {
+        // Corner n is the centre plus or minus half a step along each grid axis (bit a of n: +).
+        const SIGN: [[f32; 8]; 3] = [
+            [-1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0],
+            [-1.0, -1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0],
+            [-1.0, -1.0, -1.0, -1.0, 1.0, 1.0, 1.0, 1.0],
+        ];
+        let c = self.camera_frame(v);
+        let d = self.axis.map(|a| a.map(|x| x * half));
+        let corner = |k: usize| -> [f32; 8] {
+            std::array::from_fn(|n| c[k] + SIGN[0][n] * d[0][k] + SIGN[1][n] * d[1][k] + SIGN[2][n] * d[2][k])
+        };
+        let (xs, ys, zs) = (corner(0), corner(1), corner(2));
+        // NaN depths fail `z > 0` too.
+        if !(zs.iter().all(|&z| z > 0.0) && c[2] > 0.0) {
+            return None;
+        }
+        let (uc, vc) = self.image_of(c[0], c[1], c[2]);
+        let (us, ws): ([f32; 8], [f32; 8]) = if self.distorted {
+            let mut us = [0f32; 8];
+            let mut ws = [0f32; 8];
+            for n in 0..8 {
+                (us[n], ws[n]) = self.image_of(xs[n], ys[n], zs[n]);
+            }
+            (us, ws)
+        } else {
+            // The pinhole map, written so the eight corners go through it together.
+            let inv: [f32; 8] = std::array::from_fn(|n| 1.0 / zs[n]);
+            (
+                std::array::from_fn(|n| (self.fx * xs[n] + self.skew * ys[n]) * inv[n] + self.cx),
+                std::array::from_fn(|n| self.fy * ys[n] * inv[n] + self.cy),
+            )
+        };
+        let (mut u0, mut u1, mut v0, mut v1) = (uc, uc, vc, vc);
+        for n in 0..8 {
+            u0 = u0.min(us[n]);
+            u1 = u1.max(us[n]);
+            v0 = v0.min(ws[n]);
+            v1 = v1.max(ws[n]);
+        }
+        Some((c[2], uc, vc, [u0, u1, v0, v1]))
+    }
+
     /// The footprint of the cube of half-edge `half` (voxel units, 0.5 = the voxel) centred on voxel
     /// `v`, as [`Self::footprint`].
     pub(crate) fn footprint_of_cube(&self, v: [u32; 3], half: f32) -> Option<Footprint> {
-        let (depth, uc, vc) = self.project(self.point(v, [0.0; 3]));
-        let (mut u0, mut u1, mut v0, mut v1) = (uc, uc, vc, vc);
-        for corner in 0..8 {
-            let f = [0, 1, 2].map(|a| if corner >> a & 1 == 1 { half } else { -half });
-            let (z, u, w) = self.project(self.point(v, f));
-            if z.is_nan() || z <= 0.0 {
-                return None;
-            }
-            u0 = u0.min(u);
-            u1 = u1.max(u);
-            v0 = v0.min(w);
-            v1 = v1.max(w);
-        }
+        let (depth, uc, vc, [u0, u1, v0, v1]) = self.cube_rect(v, half)?;
         let on_image = u1 >= 0.0 && v1 >= 0.0 && u0 < self.width as f32 && v0 < self.height as f32;
         if depth.is_nan() || depth <= 0.0 || !on_image {
             return None;
@@ -395,6 +470,34 @@ impl VoxelCamera {
         let (y0, y1) = range(v0, v1, vc, self.height);
         Some(Footprint { depth, x0, x1, y0, y1 })
     }
+
+    /// Per pixel (row-major), whether a footprint of one of `voxels` covers it the way
+    /// [`super::space_carving::reproject`] splats voxels: the pixels whose centres lie in the
+    /// bounding rectangle of the voxel's projected corners, and always the pixel its centre falls
+    /// in; voxels with a corner behind the camera cover nothing. Computed in `f32`.
+    pub(crate) fn cover(&self, voxels: &[[u32; 3]]) -> Vec<bool> {
+        let (w, h) = (self.width, self.height);
+        let mut out = vec![false; w * h];
+        for &v in voxels {
+            let Some((_, uc, vc, [u0, u1, v0, v1])) = self.cube_rect(v, 0.5) else { continue };
+            if !(u0.is_finite() && u1.is_finite() && v0.is_finite() && v1.is_finite()) {
+                continue;
+            }
+            let ua = (u0 - 0.5).ceil().max(0.0);
+            let ub = (u1 - 0.5).floor().min(w as f32 - 1.0);
+            let va = (v0 - 0.5).ceil().max(0.0);
+            let vb = (v1 - 0.5).floor().min(h as f32 - 1.0);
+            if ua <= ub && va <= vb {
+                for y in va as usize..=vb as usize {
+                    out[y * w + ua as usize..=y * w + ub as usize].fill(true);
+                }
+            }
+            if let Some((x, y)) = self.pixel(uc.floor(), vc.floor()) {
+                out[y * w + x] = true;
+            }
+        }
+        out
+    }
 }
 
 /// Per pixel of one view, the nearest surface voxel covering it (by index into a voxel list).
@@ -412,6 +515,12 @@ impl ItemBuffer {
     /// The voxel (index into the list it was rendered from) nearest in pixel `(x, y)`, or [`Self::NONE`].
     pub fn get(&self, x: usize, y: usize) -> u32 {
         self.id.get(y * self.width + x).copied().unwrap_or(Self::NONE)
+    }
+
+    /// The voxel nearest in pixel `p = y * width + x`, or [`Self::NONE`].
+    #[inline]
+    pub(crate) fn at(&self, p: usize) -> u32 {
+        self.id.get(p).copied().unwrap_or(Self::NONE)
     }
 
     pub(crate) fn render(cam: &VoxelCamera, voxels: &[[u32; 3]]) -> ItemBuffer {
@@ -483,87 +592,130 @@ pub(crate) fn facing(cam: &VoxelCamera, p: [f32; 3], normal: [f32; 3]) -> f32 {
     (d[0] * normal[0] + d[1] * normal[1] + d[2] * normal[2]) / l
 }
 
-/// Mean colour of the footprint pixels of `v` in a view for which `visible(x, y)` holds (and inside
-/// the mask), with the pixel rectangle used.
-pub(crate) fn sample_view(
-    cam: &VoxelCamera,
-    view: &PhotoView<'_>,
-    fp: &Footprint,
-    visible: impl Fn(usize, usize) -> bool,
-) -> (u32, [f32; 3]) {
-    let img = view.image.as_raw();
-    let mut sum = [0u32; 3];
-    let mut count = 0u32;
-    for y in fp.y0..fp.y1 {
-        for x in fp.x0..fp.x1 {
-            if !visible(x, y) || view.mask.is_some_and(|m| !m.get(x as u32, y as u32)) {
-                continue;
-            }
-            let p = 3 * (y * cam.width + x);
-            if let Some(px) = img.get(p..p + 3) {
-                for c in 0..3 {
-                    sum[c] += px[c] as u32;
+/// Width of the silhouette contour band (see [`ViewPixels`]), pixels.
+pub const CONTOUR_BAND_PX: usize = 2;
+
+/// Bit of [`ViewPixels`]' per-pixel class: inside the silhouette (every pixel without a mask).
+const INSIDE: u8 = 1;
+/// Bit of [`ViewPixels`]' per-pixel class: inside the silhouette and on its contour band.
+const RIM: u8 = 2;
+
+/// One view's visible footprint pixels, summed in one pass by [`ViewPixels::sample`].
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub(crate) struct FootprintSample {
+    /// Visible pixels inside the silhouette.
+    pub(crate) count: u32,
+    /// Their mean colour, 8-bit levels (zero without pixels).
+    pub(crate) mean: [f32; 3],
+    /// Whether one of them lies on the silhouette's contour band.
+    pub(crate) rim: bool,
+}
+
+/// A view's pixels prepared for sampling footprints: its image and, per pixel, whether it is inside
+/// the silhouette and whether it lies on the silhouette's *contour band*: inside the mask with a
+/// pixel outside it within [`CONTOUR_BAND_PX`] along its row or column (the image border is no
+/// contour: the object may go on beyond it). Without a mask every pixel is inside and none is on a
+/// contour.
+///
+/// The carvers keep voxels seen on a contour band: the visual hull touches the object along its
+/// rims, so a voxel that a view sees on its silhouette's outline lies on the surface (up to the
+/// silhouettes' accuracy), and carving it would shrink that view's silhouette of the result below
+/// the hull's.
+pub(crate) struct ViewPixels<'a> {
+    image: &'a [u8],
+    width: usize,
+    class: Vec<u8>,
+}
+
+impl<'a> ViewPixels<'a> {
+    /// Classify `view`'s pixels (its image and mask sizes must match, see `check_inputs`).
+    pub(crate) fn new(view: &PhotoView<'a>) -> ViewPixels<'a> {
+        let (w, h) = (view.image.width() as usize, view.image.height() as usize);
+        let class = match view.mask {
+            None => vec![INSIDE; w * h],
+            Some(m) => {
+                let data = m.data();
+                let outside = |x: usize, y: usize| data[y * w + x] == 0;
+                let mut class = vec![0u8; w * h];
+                for y in 0..h {
+                    for x in 0..w {
+                        if outside(x, y) {
+                            continue;
+                        }
+                        let b = CONTOUR_BAND_PX;
+                        let near = (x.saturating_sub(b)..(x + b + 1).min(w)).any(|u| outside(u, y))
+                            || (y.saturating_sub(b)..(y + b + 1).min(h)).any(|v| outside(x, v));
+                        class[y * w + x] = if near { INSIDE | RIM } else { INSIDE };
+                    }
                 }
+                class
+            }
+        };
+        ViewPixels { image: view.image.as_raw(), width: w, class }
+    }
+
+    /// Every view of `views`, in parallel.
+    pub(crate) fn all(views: &[PhotoView<'a>]) -> Vec<ViewPixels<'a>> {
+        views.par_iter().map(ViewPixels::new).collect()
+    }
+
+    /// Whether pixel `(x, y)` is inside the silhouette.
+    #[inline]
+    pub(crate) fn inside(&self, x: usize, y: usize) -> bool {
+        self.class[y * self.width + x] & INSIDE != 0
+    }
+
+    /// The colour of pixel `(x, y)`.
+    #[inline]
+    pub(crate) fn colour(&self, x: usize, y: usize) -> [u8; 3] {
+        let p = 3 * (y * self.width + x);
+        [self.image[p], self.image[p + 1], self.image[p + 2]]
+    }
+
+    /// The pixels of footprint `fp` for which `visible(p)` holds (`p = y * width + x`) and that lie
+    /// inside the silhouette: their count, mean colour and whether one is on the contour band.
+    #[inline]
+    pub(crate) fn sample(&self, fp: &Footprint, visible: impl Fn(usize) -> bool) -> FootprintSample {
+        let mut sum = [0u32; 3];
+        let mut count = 0u32;
+        let mut rim = 0u8;
+        for y in fp.y0..fp.y1 {
+            let row = y * self.width;
+            for p in row + fp.x0..row + fp.x1 {
+                let c = self.class[p];
+                if c == 0 || !visible(p) {
+                    continue;
+                }
+                rim |= c;
+                let px = &self.image[3 * p..3 * p + 3];
+                sum[0] += px[0] as u32;
+                sum[1] += px[1] as u32;
+                sum[2] += px[2] as u32;
                 count += 1;
             }
         }
-    }
-    if count == 0 {
-        (0, [0.0; 3])
-    } else {
-        (count, sum.map(|s| s as f32 / count as f32))
+        let mean = if count == 0 { [0.0; 3] } else { sum.map(|s| s as f32 / count as f32) };
+        FootprintSample { count, mean, rim: rim & RIM != 0 }
     }
 }
 
-/// Width of the silhouette contour band of [`touches_contour`], pixels.
-pub const CONTOUR_BAND_PX: i64 = 2;
-
-/// Whether a pixel of footprint `fp` for which `visible(x, y)` holds lies on the view's silhouette
-/// contour: inside the mask with a pixel outside it within [`CONTOUR_BAND_PX`] along a row or
-/// column (the image border is no contour: the object may go on beyond it). Always `false` without
-/// a mask.
-///
-/// The carvers keep such voxels: the visual hull touches the object along its rims, so a voxel that
-/// a view sees on its silhouette's outline lies on the surface (up to the silhouettes' accuracy),
-/// and carving it would shrink that view's silhouette of the result below the hull's.
-pub(crate) fn touches_contour(view: &PhotoView<'_>, fp: &Footprint, visible: impl Fn(usize, usize) -> bool) -> bool {
-    let Some(m) = view.mask else { return false };
-    let (w, h) = (m.width(), m.height());
-    let outside = |x: i64, y: i64| x >= 0 && y >= 0 && x < w as i64 && y < h as i64 && !m.get(x as u32, y as u32);
-    for y in fp.y0..fp.y1 {
-        for x in fp.x0..fp.x1 {
-            if !visible(x, y) || !m.get(x as u32, y as u32) {
-                continue;
-            }
-            let (xi, yi) = (x as i64, y as i64);
-            for d in 1..=CONTOUR_BAND_PX {
-                if outside(xi - d, yi) || outside(xi + d, yi) || outside(xi, yi - d) || outside(xi, yi + d) {
-                    return true;
-                }
-            }
-        }
-    }
-    false
-}
-
-/// The colour of the pixel voxel `v`'s centre projects into, if `visible(x, y)` holds there and the
-/// pixel is inside the mask.
+/// The colour of the pixel voxel `v`'s centre projects into, if `visible(p)` holds there (`p = y *
+/// width + x`) and the pixel is inside the silhouette.
 pub(crate) fn centre_sample(
     cam: &VoxelCamera,
-    view: &PhotoView<'_>,
+    px: &ViewPixels<'_>,
     v: [u32; 3],
-    visible: impl Fn(usize, usize) -> bool,
+    visible: impl Fn(usize) -> bool,
 ) -> Option<[u8; 3]> {
     let (z, u, w) = cam.project(cam.point(v, [0.0; 3]));
     if z.is_nan() || z <= 0.0 {
         return None;
     }
     let (x, y) = cam.pixel(u, w)?;
-    if !visible(x, y) || view.mask.is_some_and(|m| !m.get(x as u32, y as u32)) {
+    if !px.inside(x, y) || !visible(y * px.width + x) {
         return None;
     }
-    let p = 3 * (y * cam.width + x);
-    view.image.as_raw().get(p..p + 3).map(|px| [px[0], px[1], px[2]])
+    Some(px.colour(x, y))
 }
 
 /// Count-weighted standard deviation of per-view mean colours, RMS over channels, 8-bit levels.
@@ -613,9 +765,9 @@ pub(crate) fn mean_ncc(patterns: &[[f32; 24]]) -> Option<f32> {
 /// The 24-value pattern (8 sub-voxel points × RGB) of voxel `v` in a view, if every point is visible.
 pub(crate) fn ncc_pattern(
     cam: &VoxelCamera,
-    view: &PhotoView<'_>,
+    px: &ViewPixels<'_>,
     v: [u32; 3],
-    visible: impl Fn(usize, usize) -> bool,
+    visible: impl Fn(usize) -> bool,
 ) -> Option<[f32; 24]> {
     let mut out = [0f32; 24];
     for s in 0..8 {
@@ -625,12 +777,12 @@ pub(crate) fn ncc_pattern(
             return None;
         }
         let (x, y) = cam.pixel(u, w)?;
-        if !visible(x, y) {
+        if !visible(y * px.width + x) {
             return None;
         }
-        let px = view.image.get_pixel(x as u32, y as u32).0;
+        let rgb = px.colour(x, y);
         for c in 0..3 {
-            out[3 * s + c] = px[c] as f32;
+            out[3 * s + c] = rgb[c] as f32;
         }
     }
     Some(out)
@@ -729,6 +881,116 @@ mod tests {
             ..camera
         };
         assert!(VoxelCamera::new(&tangential, &grid).box_pixels([0; 3], [16; 3]).is_none());
+    }
+
+    #[test]
+    fn cube_rectangles_and_covers_match_projecting_every_corner() {
+        use crate::geometry::{Aabb, Intrinsics, Pose};
+        use crate::pipeline::occupancy::Occupancy;
+        use nalgebra::Vector3;
+        let lens = Intrinsics {
+            k1: -0.21,
+            k2: 0.09,
+            p1: 0.004,
+            p2: -0.003,
+            k3: -0.02,
+            skew: 0.5,
+            ..Intrinsics::new(800.0, 790.0, 321.0, 238.0)
+        };
+        let pose = Pose::look_at(Vector3::new(0.05, -0.3, 0.15), Vector3::zeros(), Vector3::z());
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.05; 3], max: [0.05; 3] }, 24);
+        for intrinsics in [lens, Intrinsics::new(800.0, 790.0, 321.0, 238.0)] {
+            let camera = CameraModel { intrinsics, pose, width: 640, height: 480 };
+            let vc = VoxelCamera::new(&camera, &grid);
+            let mut checked = 0;
+            for v in [[0, 0, 0], [23, 23, 23], [0, 23, 7], [23, 0, 3], [12, 12, 12], [5, 17, 20]] {
+                for half in [0.5, 0.6, 0.25] {
+                    let (depth, _, _, rect) = vc.cube_rect(v, half).expect("in front");
+                    let (dc, mut u0, mut v0) = vc.project(vc.point(v, [0.0; 3]));
+                    let (mut u1, mut v1) = (u0, v0);
+                    for n in 0..8 {
+                        let f = [0, 1, 2].map(|a| if n >> a & 1 == 1 { half } else { -half });
+                        let (_, u, w) = vc.project(vc.point(v, f));
+                        (u0, u1, v0, v1) = (u0.min(u), u1.max(u), v0.min(w), v1.max(w));
+                    }
+                    assert!((depth - dc).abs() < 1e-5, "{depth} vs {dc}");
+                    for (a, b) in rect.iter().zip([u0, u1, v0, v1]) {
+                        assert!((a - b).abs() < 2e-3, "{rect:?} vs {:?}", [u0, u1, v0, v1]);
+                    }
+                    checked += 1;
+                }
+            }
+            assert_eq!(checked, 18);
+            // The f32 cover splats like the f64 re-projection of space carving, but for pixels
+            // whose centre lies within rounding of a rectangle's edge.
+            let ball = Occupancy::from_fn(grid, |p| p.norm() < 0.04);
+            let boundary = ball.boundary_voxels();
+            let ours = vc.cover(&boundary);
+            let theirs = crate::pipeline::space_carving::reproject(&ball, &boundary, &camera);
+            let covered = theirs.count();
+            let differ = (0..480u32)
+                .flat_map(|y| (0..640u32).map(move |x| (x, y)))
+                .filter(|&(x, y)| ours[(y * 640 + x) as usize] != theirs.get(x, y))
+                .count();
+            assert!(covered > 10_000, "{covered}");
+            assert!(differ * 1000 <= covered, "{differ} of {covered} pixels differ");
+        }
+    }
+
+    #[test]
+    fn footprint_samples_follow_visibility_and_the_contour_band() {
+        use crate::geometry::{Intrinsics, Pose};
+        use nalgebra::Vector3;
+        let (w, h) = (64u32, 48u32);
+        // A disc silhouette with a notch, and a textured image.
+        let mask = Mask::from_fn(w, h, |x, y| {
+            let (dx, dy) = (x as f32 - 30.0, y as f32 - 24.0);
+            dx * dx + dy * dy < 300.0 && !(x > 38 && (20..23).contains(&y))
+        });
+        let image = RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 4) as u8, (y * 5) as u8, ((x * y) % 251) as u8]));
+        let camera = CameraModel {
+            intrinsics: Intrinsics::new(50.0, 50.0, 32.0, 24.0),
+            pose: Pose::look_at(Vector3::new(0.0, -1.0, 0.0), Vector3::zeros(), Vector3::z()),
+            width: w,
+            height: h,
+        };
+        let visible = |p: usize| (p * 7919) % 5 != 0;
+        for masked in [true, false] {
+            let view = PhotoView { camera, image: &image, mask: masked.then_some(&mask) };
+            let px = ViewPixels::new(&view);
+            let inside = |x: i64, y: i64| !masked || mask.get(x as u32, y as u32);
+            let outside = |x: i64, y: i64| x >= 0 && y >= 0 && x < w as i64 && y < h as i64 && !inside(x, y);
+            let mut rims = 0;
+            for (x0, y0) in [(0, 0), (5, 10), (12, 20), (20, 5), (28, 20), (36, 18), (40, 30), (60, 44)] {
+                let fp = Footprint { depth: 1.0, x0, x1: (x0 + 4).min(64), y0, y1: (y0 + 4).min(48) };
+                // By the definition, pixel by pixel.
+                let (mut count, mut sum, mut rim) = (0u32, [0f32; 3], false);
+                for y in fp.y0..fp.y1 {
+                    for x in fp.x0..fp.x1 {
+                        let (xi, yi) = (x as i64, y as i64);
+                        if !visible(y * 64 + x) || !inside(xi, yi) {
+                            continue;
+                        }
+                        count += 1;
+                        for (acc, v) in sum.iter_mut().zip(image.get_pixel(x as u32, y as u32).0) {
+                            *acc += v as f32;
+                        }
+                        rim |= (1..=CONTOUR_BAND_PX as i64).any(|d| {
+                            outside(xi - d, yi) || outside(xi + d, yi) || outside(xi, yi - d) || outside(xi, yi + d)
+                        });
+                    }
+                }
+                let got = px.sample(&fp, visible);
+                assert_eq!((got.count, got.rim), (count, rim), "footprint at {x0},{y0}, masked {masked}");
+                for (got, sum) in got.mean.iter().zip(sum) {
+                    let want = if count == 0 { 0.0 } else { sum / count as f32 };
+                    assert!((got - want).abs() < 1e-3, "{got} vs {want}");
+                }
+                rims += usize::from(rim);
+            }
+            // The cases reach both sides of the contour band when there is a mask.
+            assert_eq!(rims > 0, masked);
+        }
     }
 
     #[test]

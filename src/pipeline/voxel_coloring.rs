@@ -52,8 +52,8 @@ use rayon::prelude::*;
 use super::occupancy::Occupancy;
 use super::photo_consistency::{
     centre_sample, check_inputs, facing, image_noise_sigma, is_consistent, ncc_pattern, normal_estimate,
-    render_item_buffers, sample_view, surface_colour, touches_contour, ItemBuffer, PhotoError, PhotoNoise, PhotoParams,
-    PhotoView, ViewSample, VoxelCamera,
+    render_item_buffers, surface_colour, FootprintSample, ItemBuffer, PhotoError, PhotoNoise, PhotoParams, PhotoView,
+    ViewPixels, ViewSample, VoxelCamera,
 };
 use crate::geometry::VoxelGrid;
 
@@ -177,7 +177,7 @@ impl Dense {
 /// and NCC patterns when asked for.
 fn gather(
     cams: &[VoxelCamera],
-    views: &[PhotoView<'_>],
+    pixels: &[ViewPixels<'_>],
     buffers: &[ItemBuffer],
     v: [u32; 3],
     idx: u32,
@@ -187,19 +187,19 @@ fn gather(
 ) -> (Vec<ViewSample>, Vec<[f32; 24]>) {
     let mut samples = Vec::new();
     let mut patterns = Vec::new();
-    for ((cam, view), buf) in cams.iter().zip(views).zip(buffers) {
+    for ((cam, px), buf) in cams.iter().zip(pixels).zip(buffers) {
         let cos = facing(cam, cam.point(v, [0.0; 3]), normal);
         if cos < params.min_cos {
             continue;
         }
         let Some(fp) = cam.footprint(v) else { continue };
-        let visible = |x: usize, y: usize| buf.get(x, y) == idx;
-        let (count, mean) = sample_view(cam, view, &fp, visible);
+        let visible = |p: usize| buf.at(p) == idx;
+        let FootprintSample { count, mean, .. } = px.sample(&fp, visible);
         if count > 0 {
-            let centre = centre_sample(cam, view, v, visible);
+            let centre = centre_sample(cam, px, v, visible);
             samples.push(ViewSample { count, mean, centre });
             if want_ncc {
-                if let Some(p) = ncc_pattern(cam, view, v, visible) {
+                if let Some(p) = ncc_pattern(cam, px, v, visible) {
                     patterns.push(p);
                 }
             }
@@ -220,6 +220,7 @@ pub fn carve_photo_surface(
     let grid = *start.grid();
     check_inputs(&grid, views, params)?;
     let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let pixels = ViewPixels::all(views);
     let mut dense = Dense::from(start);
     let mut stats = PhotoStats::default();
     while stats.iterations < params.max_iterations {
@@ -231,15 +232,15 @@ pub fn carve_photo_surface(
             .par_iter()
             .enumerate()
             .filter_map(|(idx, &v)| {
-                let on_rim = cams.iter().zip(views).zip(&buffers).any(|((cam, view), buf)| {
-                    cam.footprint(v).is_some_and(|fp| touches_contour(view, &fp, |x, y| buf.get(x, y) == idx as u32))
+                let on_rim = cams.iter().zip(&pixels).zip(&buffers).any(|((cam, px), buf)| {
+                    cam.footprint(v).is_some_and(|fp| px.sample(&fp, |p| buf.at(p) == idx as u32).rim)
                 });
                 if on_rim {
                     return None;
                 }
                 let normal = normal_estimate(&occ, v);
                 let (samples, patterns) =
-                    gather(&cams, views, &buffers, v, idx as u32, normal, params, params.min_ncc.is_some());
+                    gather(&cams, &pixels, &buffers, v, idx as u32, normal, params, params.min_ncc.is_some());
                 (!is_consistent(&samples, &patterns, params)).then_some(v)
             })
             .collect();
@@ -255,7 +256,7 @@ pub fn carve_photo_surface(
     }
     stats.carved -= restore_silhouettes(start, &mut dense, views);
     let occupancy = dense.to_occupancy(grid);
-    let surface = colour_dense(&dense, &cams, views, params);
+    let surface = colour_dense(&dense, &cams, &pixels, params);
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats })
 }
@@ -281,6 +282,7 @@ pub fn carve_photo_sweeps(
     let grid = *start.grid();
     check_inputs(&grid, views, params)?;
     let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let pixels = ViewPixels::all(views);
     let mut dense = Dense::from(start);
     let mut stats = PhotoStats::default();
     let mut buffers: Vec<SweepBuffer> = cams.iter().map(SweepBuffer::new).collect();
@@ -292,7 +294,7 @@ pub fn carve_photo_sweeps(
             [(0, true), (0, false), (1, true), (1, false), (2, true), (2, false)].into_iter().enumerate()
         {
             let sweep = Sweep { axis, forward, id: n as u8 };
-            let c = sweep.run(&mut dense, &grid, &cams, views, params, &mut buffers, &mut record, &mut stats);
+            let c = sweep.run(&mut dense, &grid, &cams, &pixels, params, &mut buffers, &mut record, &mut stats);
             tracing::debug!(iteration = stats.iterations, axis, forward, carved = c, "photo carving: sweep");
             carved += c;
             stats.sweeps += 1;
@@ -328,7 +330,7 @@ pub fn carve_photo_sweeps(
         }
     }
     let occupancy = dense.to_occupancy(grid);
-    let surface = colour_dense(&dense, &cams, views, params);
+    let surface = colour_dense(&dense, &cams, &pixels, params);
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats })
 }
@@ -349,7 +351,7 @@ impl Sweep {
         dense: &mut Dense,
         grid: &VoxelGrid,
         cams: &[VoxelCamera],
-        views: &[PhotoView<'_>],
+        pixels: &[ViewPixels<'_>],
         params: &PhotoParams,
         buffers: &mut [SweepBuffer],
         record: &mut SweepRecord,
@@ -398,7 +400,7 @@ impl Sweep {
                     let active = &active;
                     pass.par_iter()
                         .enumerate()
-                        .map(|(n, &v)| judge(dense, cams, views, buffers, active, v, (first + n) as u32, params))
+                        .map(|(n, &v)| judge(dense, cams, pixels, buffers, active, v, (first + n) as u32, params))
                         .collect()
                 };
                 stats.visits += pass.len() as u64;
@@ -535,7 +537,7 @@ const SAMPLE_HALF_EDGE: f32 = 0.25;
 fn judge(
     dense: &Dense,
     cams: &[VoxelCamera],
-    views: &[PhotoView<'_>],
+    pixels: &[ViewPixels<'_>],
     buffers: &[SweepBuffer],
     active: &[bool],
     v: [u32; 3],
@@ -545,7 +547,7 @@ fn judge(
     let normal = normal_estimate(&|i, j, k| dense.get(i, j, k), v);
     let mut samples = Vec::new();
     let mut patterns = Vec::new();
-    for (n, ((cam, view), buf)) in cams.iter().zip(views).zip(buffers).enumerate() {
+    for (n, ((cam, px), buf)) in cams.iter().zip(pixels).zip(buffers).enumerate() {
         if !active[n] {
             continue;
         }
@@ -554,12 +556,12 @@ fn judge(
             continue;
         }
         let Some(fp) = cam.footprint_of_cube(v, SAMPLE_HALF_EDGE) else { continue };
-        let visible = |x: usize, y: usize| buf.owns(y * cam.width + x, idx);
-        let (count, mean) = sample_view(cam, view, &fp, visible);
+        let visible = |p: usize| buf.owns(p, idx);
+        let FootprintSample { count, mean, .. } = px.sample(&fp, visible);
         if count > 0 {
             samples.push((n as u32, ViewSample { count, mean, centre: None }));
             if params.min_ncc.is_some() {
-                if let Some(p) = ncc_pattern(cam, view, v, visible) {
+                if let Some(p) = ncc_pattern(cam, px, v, visible) {
                     patterns.push(p);
                 }
             }
@@ -590,7 +592,7 @@ pub fn ordinal_direction(grid: &VoxelGrid, views: &[PhotoView<'_>]) -> Result<[f
 fn colouring_verdict(
     dense: &Dense,
     cams: &[VoxelCamera],
-    views: &[PhotoView<'_>],
+    pixels: &[ViewPixels<'_>],
     claimed: &[Vec<bool>],
     v: [u32; 3],
     params: &PhotoParams,
@@ -598,24 +600,16 @@ fn colouring_verdict(
     let mut samples = Vec::new();
     let mut patterns = Vec::new();
     let mut rim = false;
-    for ((cam, view), marks) in cams.iter().zip(views).zip(claimed) {
-        if let Some(fp) = cam.footprint(v) {
-            rim |= touches_contour(view, &fp, |x, y| !marks[y * cam.width + x]);
-        }
-    }
     let normal = normal_estimate(&|i, j, k| dense.get(i, j, k), v);
-    for ((cam, view), marks) in cams.iter().zip(views).zip(claimed) {
-        let cos = facing(cam, cam.point(v, [0.0; 3]), normal);
-        if cos < params.min_cos {
-            continue;
-        }
+    for ((cam, px), marks) in cams.iter().zip(pixels).zip(claimed) {
         let Some(fp) = cam.footprint(v) else { continue };
-        let visible = |x: usize, y: usize| !marks[y * cam.width + x];
-        let (count, mean) = sample_view(cam, view, &fp, visible);
-        if count > 0 {
+        let visible = |p: usize| !marks[p];
+        let FootprintSample { count, mean, rim: on_rim } = px.sample(&fp, visible);
+        rim |= on_rim;
+        if count > 0 && facing(cam, cam.point(v, [0.0; 3]), normal) >= params.min_cos {
             samples.push(ViewSample { count, mean, centre: None });
             if params.min_ncc.is_some() {
-                if let Some(p) = ncc_pattern(cam, view, v, visible) {
+                if let Some(p) = ncc_pattern(cam, px, v, visible) {
                     patterns.push(p);
                 }
             }
@@ -776,6 +770,7 @@ pub fn color_voxels_every_voxel(
     check_inputs(&grid, views, params)?;
     let d = ordinal_direction(&grid, views)?.map(|x| x as f32);
     let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let pixels = ViewPixels::all(views);
     let mut dense = Dense::from(start);
 
     // Layers of increasing d·x, one voxel thick.
@@ -795,7 +790,7 @@ pub fn color_voxels_every_voxel(
         stats.iterations += 1;
         // Verdicts: Some(true) consistent and seen, Some(false) carved, None unseen.
         let verdicts: Vec<Option<bool>> =
-            layer.par_iter().map(|&(_, v)| colouring_verdict(&dense, &cams, views, &claimed, v, params)).collect();
+            layer.par_iter().map(|&(_, v)| colouring_verdict(&dense, &cams, &pixels, &claimed, v, params)).collect();
         stats.visits += layer.len() as u64;
         for (&(_, v), verdict) in layer.iter().zip(&verdicts) {
             match verdict {
@@ -811,21 +806,20 @@ pub fn color_voxels_every_voxel(
     }
     stats.carved -= restore_silhouettes(start, &mut dense, views);
     let occupancy = dense.to_occupancy(grid);
-    let surface = colour_dense(&dense, &cams, views, params);
+    let surface = colour_dense(&dense, &cams, &pixels, params);
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats })
 }
 
 /// Give back carved voxels of `start` where the result's silhouette lost pixels: in each view with
-/// a mask, the pixels inside it that the start's re-projection covers and the result's
-/// ([`super::space_carving::reproject`]) does not; every carved voxel whose footprint, slightly
-/// grown, meets such a pixel is restored, until no pixel is lost (at most four rounds). Since the
-/// start's coverage of those pixels came from its boundary voxels, which are either still there or
-/// restored, the result's silhouettes then cover every in-mask pixel the start's did, and cover
-/// nothing the start's did not: its re-projection IoU is at least the start's. Returns the voxels
-/// restored.
+/// a mask, the pixels inside it that the start's re-projection covers and the result's does not
+/// (both splatted from their surface voxels as [`super::space_carving::reproject`] does, in `f32`:
+/// `VoxelCamera::cover`); every carved voxel whose footprint, slightly grown, meets such a pixel is
+/// restored, until no pixel is lost (at most four rounds). Since the start's coverage of those
+/// pixels came from its boundary voxels, which are either still there or restored, the result's
+/// silhouettes then cover every in-mask pixel the start's did, and cover nothing the start's did
+/// not: its re-projection IoU is at least the start's. Returns the voxels restored.
 fn restore_silhouettes(start: &Occupancy, dense: &mut Dense, views: &[PhotoView<'_>]) -> u64 {
-    use super::space_carving::reproject;
     let grid = *start.grid();
     let masked: Vec<&PhotoView<'_>> = views.iter().filter(|v| v.mask.is_some()).collect();
     if masked.is_empty() {
@@ -833,23 +827,18 @@ fn restore_silhouettes(start: &Occupancy, dense: &mut Dense, views: &[PhotoView<
     }
     let cams: Vec<VoxelCamera> = masked.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
     let start_boundary = start.boundary_voxels();
-    let start_cover: Vec<super::silhouette::Mask> =
-        masked.par_iter().map(|v| reproject(start, &start_boundary, &v.camera)).collect();
+    let start_cover: Vec<Vec<bool>> = cams.par_iter().map(|c| c.cover(&start_boundary)).collect();
     let mut restored = 0u64;
     for _ in 0..4 {
-        let result = dense.to_occupancy(grid);
-        let boundary = result.boundary_voxels();
+        let boundary = dense.surface();
         let lost: Vec<Vec<bool>> = masked
             .par_iter()
+            .zip(&cams)
             .zip(&start_cover)
-            .map(|(v, cover)| {
-                let now = reproject(&result, &boundary, &v.camera);
-                let m = v.mask.expect("masked views only");
-                let (w, h) = (v.camera.width, v.camera.height);
-                (0..h)
-                    .flat_map(|y| (0..w).map(move |x| (x, y)))
-                    .map(|(x, y)| m.get(x, y) && cover.get(x, y) && !now.get(x, y))
-                    .collect()
+            .map(|((v, cam), cover)| {
+                let now = cam.cover(&boundary);
+                let m = v.mask.expect("masked views only").data();
+                (0..now.len()).map(|p| m[p] != 0 && cover[p] && !now[p]).collect()
             })
             .collect();
         if lost.iter().all(|l| !l.iter().any(|&b| b)) {
@@ -883,7 +872,12 @@ fn restore_silhouettes(start: &Occupancy, dense: &mut Dense, views: &[PhotoView<
     restored
 }
 
-fn colour_dense(dense: &Dense, cams: &[VoxelCamera], views: &[PhotoView<'_>], params: &PhotoParams) -> ColouredSurface {
+fn colour_dense(
+    dense: &Dense,
+    cams: &[VoxelCamera],
+    pixels: &[ViewPixels<'_>],
+    params: &PhotoParams,
+) -> ColouredSurface {
     let voxels = dense.surface();
     let buffers = render_item_buffers(cams, &voxels);
     let occ = |i, j, k| dense.get(i, j, k);
@@ -892,7 +886,7 @@ fn colour_dense(dense: &Dense, cams: &[VoxelCamera], views: &[PhotoView<'_>], pa
         .enumerate()
         .map(|(idx, &v)| {
             let normal = normal_estimate(&occ, v);
-            let (samples, _) = gather(cams, views, buffers.as_slice(), v, idx as u32, normal, params, false);
+            let (samples, _) = gather(cams, pixels, buffers.as_slice(), v, idx as u32, normal, params, false);
             (surface_colour(&samples), !samples.is_empty())
         })
         .collect();
@@ -914,7 +908,7 @@ pub fn colour_surface(
     let grid = *occupancy.grid();
     check_inputs(&grid, views, params)?;
     let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
-    Ok(colour_dense(&Dense::from(occupancy), &cams, views, params))
+    Ok(colour_dense(&Dense::from(occupancy), &cams, &ViewPixels::all(views), params))
 }
 
 /// Photometric re-projection error of a coloured surface on `grid`: each view's item buffer of the
@@ -1103,7 +1097,16 @@ mod tests {
             let mut record = SweepRecord::new();
             let mut stats = PhotoStats::default();
             let sweep = Sweep { axis: 2, forward, id: 0 };
-            let carved = sweep.run(&mut dense, &g, &vcams, &views, &params, &mut buffers, &mut record, &mut stats);
+            let carved = sweep.run(
+                &mut dense,
+                &g,
+                &vcams,
+                &ViewPixels::all(&views),
+                &params,
+                &mut buffers,
+                &mut record,
+                &mut stats,
+            );
             // Each surface voxel is visited once, plus the ones carving exposed.
             assert!(stats.visits >= hull.boundary_voxels().len() as u64);
             assert!(stats.visits <= hull.boundary_voxels().len() as u64 + carved * 6);

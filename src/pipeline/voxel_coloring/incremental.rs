@@ -1,21 +1,26 @@
 //! The incremental item-buffer carver behind [`super::carve_photo`] (see the module docs there).
 //!
 //! State: the surface voxels as *slots* (a slot is never reused; a carved voxel's slot goes dead),
-//! and per view the footprint of every slot (computed once, when the voxel reaches the surface) and
+//! and per view the footprint of every slot (computed once, when the voxel reaches the surface),
 //! the item buffer of the live slots (per pixel the nearest: smallest centre depth, ties to the
-//! smallest linear voxel index, which is the order the whole-surface renderer writes in). After an
-//! iteration carves the set `C` and exposes the set `E` (occupied face neighbours of `C` not yet on
-//! the surface):
-//! - the pixels a voxel of `C` owned are reset, and the live slots whose footprint meets a 16x16
-//!   tile holding a reset pixel are drawn again over them (a pixel no voxel of `C` owned already
-//!   names the nearest of the old surface minus `C`, which no redraw can beat);
-//! - the voxels of `E` are drawn over everything.
+//! smallest linear voxel index, which is the order the whole-surface renderer writes in), per 8x8
+//! pixel tile the slots whose footprints meet it, and per slot its *sample*: the count, mean colour
+//! and contour-band flag of the footprint pixels it owns (`photo_consistency::ViewPixels`). After
+//! an iteration carves the set `C` and exposes the set `E` (occupied face neighbours of `C` not yet
+//! on the surface):
+//! - the pixels a voxel of `C` owned are reset, and the live slots listed in a tile holding a reset
+//!   pixel are drawn again over them (a pixel no voxel of `C` owned already names the nearest of
+//!   the old surface minus `C`, which no redraw can beat);
+//! - the voxels of `E` are drawn over everything;
+//! - every live slot that gained or lost a pixel in the view is sampled again (in that view only).
 //!
-//! The buffer is then exactly the item buffer of the new surface. A voxel's verdict depends only on
-//! its 26-neighbourhood (the normal), on which of its footprint pixels it owns and on the images,
-//! so the next iteration judges only the voxels of `E`, the live 26-neighbours of `C` and the owners
-//! (old and new) of every pixel that changed hands: every other voxel would get the verdict it got
-//! before, consistent. The result is the whole-surface iteration's, voxel for voxel.
+//! The buffer is then exactly the item buffer of the new surface, and every sample is what sampling
+//! it afresh would give. A voxel's verdict depends only on its 26-neighbourhood (the normal) and on
+//! its samples, so the next iteration judges only the voxels of `E`, the live 26-neighbours of `C`
+//! and the owners (old and new) of every pixel that changed hands: every other voxel would get the
+//! verdict it got before, consistent. Judging reads the cached samples, not the pixels (the NCC
+//! patterns, when asked for, are read from the pixels). The result is the whole-surface
+//! iteration's, voxel for voxel.
 
 use rayon::prelude::*;
 
@@ -23,8 +28,8 @@ use super::{restore_silhouettes, ColouredSurface, Dense, PhotoModel, PhotoStats,
 use crate::geometry::VoxelGrid;
 use crate::pipeline::occupancy::Occupancy;
 use crate::pipeline::photo_consistency::{
-    centre_sample, check_inputs, colour_spread, facing, is_consistent, ncc_pattern, normal_estimate, sample_view,
-    surface_colour, touches_contour, Footprint, PhotoError, PhotoParams, PhotoView, ViewSample, VoxelCamera,
+    centre_sample, check_inputs, colour_spread, facing, is_consistent, ncc_pattern, normal_estimate, surface_colour,
+    Footprint, FootprintSample, PhotoError, PhotoParams, PhotoView, ViewPixels, ViewSample, VoxelCamera,
 };
 
 /// Bit of [`Dense::bits`]: the voxel has a slot (it is, or was, on the surface).
@@ -32,7 +37,7 @@ const SLOTTED: u8 = 4;
 /// No slot.
 const NONE: u32 = u32::MAX;
 /// Tile edge, pixels, of the redraw bookkeeping.
-const TILE: usize = 16;
+const TILE: usize = 8;
 
 /// A footprint as cached: the pixel rectangle `[x0, x1) x [y0, y1)` (empty when `x0 == x1`: the
 /// voxel has no footprint in the view) and the centre's camera depth, metres.
@@ -66,14 +71,21 @@ impl Packed {
     }
 }
 
-/// One view's cached footprints (by slot), item buffer and redraw tiles.
+/// One view's cached footprints and samples (by slot), item buffer and redraw tiles.
 struct ViewState {
     fps: Vec<Packed>,
+    /// Per slot, its visible footprint pixels in this view under the current item buffer (kept up
+    /// to date for the live slots whose owned pixels change).
+    samples: Vec<FootprintSample>,
     depth: Vec<f32>,
     id: Vec<u32>,
     width: usize,
+    /// Per redraw tile, whether it holds a pixel reset in the current update.
     tiles: Vec<bool>,
     tiles_w: usize,
+    /// Per redraw tile, the slots whose footprints meet it, with their footprints (dead slots
+    /// dropped as they are met).
+    tile_slots: Vec<Vec<(u32, Packed)>>,
 }
 
 impl ViewState {
@@ -82,11 +94,27 @@ impl ViewState {
         let tiles_w = cam.width.div_ceil(TILE);
         ViewState {
             fps: Vec::new(),
+            samples: Vec::new(),
             depth: vec![f32::INFINITY; n],
             id: vec![NONE; n],
             width: cam.width,
             tiles: vec![false; tiles_w * cam.height.div_ceil(TILE)],
             tiles_w,
+            tile_slots: vec![Vec::new(); tiles_w * cam.height.div_ceil(TILE)],
+        }
+    }
+
+    /// Cache the footprints of new slots `first..` and enter them in the tiles they meet.
+    fn extend(&mut self, cam: &VoxelCamera, first: u32, voxels: &[[u32; 3]]) {
+        for (s, &v) in (first..).zip(voxels) {
+            let packed = Packed::of(cam.footprint(v));
+            self.fps.push(packed);
+            let Some(fp) = packed.get() else { continue };
+            for ty in fp.y0 / TILE..=(fp.y1 - 1) / TILE {
+                for tx in fp.x0 / TILE..=(fp.x1 - 1) / TILE {
+                    self.tile_slots[ty * self.tiles_w + tx].push((s, packed));
+                }
+            }
         }
     }
 
@@ -94,15 +122,21 @@ impl ViewState {
     /// displaces and `s` itself (when it wins a pixel) go to `marks` when `mark` is set.
     #[inline]
     fn draw(&mut self, s: u32, lins: &[u32], mark: bool, marks: &mut Vec<u32>) {
-        let Some(fp) = self.fps[s as usize].get() else { return };
-        let lin = lins[s as usize];
+        let fp = self.fps[s as usize];
+        self.draw_packed(s, fp, lins, mark, marks);
+    }
+
+    /// [`Self::draw`] with slot `s`'s footprint given.
+    #[inline]
+    fn draw_packed(&mut self, s: u32, fp: Packed, lins: &[u32], mark: bool, marks: &mut Vec<u32>) {
+        let Some(fp) = fp.get() else { return };
         let mut won = false;
         for y in fp.y0..fp.y1 {
             let row = y * self.width;
             for p in row + fp.x0..row + fp.x1 {
                 let old = self.id[p];
-                let beats =
-                    fp.depth < self.depth[p] || (fp.depth == self.depth[p] && old != NONE && lin < lins[old as usize]);
+                let beats = fp.depth < self.depth[p]
+                    || (fp.depth == self.depth[p] && old != NONE && lins[s as usize] < lins[old as usize]);
                 if beats {
                     if mark && old != NONE {
                         marks.push(old);
@@ -118,26 +152,13 @@ impl ViewState {
         }
     }
 
-    /// Whether the footprint of slot `s` meets a flagged tile.
-    #[inline]
-    fn meets_flagged(&self, s: usize) -> bool {
-        let Some(fp) = self.fps[s].get() else { return false };
-        for ty in fp.y0 / TILE..=(fp.y1 - 1) / TILE {
-            for tx in fp.x0 / TILE..=(fp.x1 - 1) / TILE {
-                if self.tiles[ty * self.tiles_w + tx] {
-                    return true;
-                }
-            }
-        }
-        false
-    }
-
     /// Bring the item buffer from the old surface to the new one (see the module docs): `carved`
     /// slots went dead, `added` slots are new (their footprints already cached), `live` says which
-    /// slots are live. Returns the slots whose owned pixels changed.
-    fn update(&mut self, carved: &[u32], added: &[u32], live: &[bool], lins: &[u32]) -> Vec<u32> {
+    /// slots are live. Re-samples and returns the live slots whose owned pixels changed (sorted).
+    fn update(&mut self, px: &ViewPixels<'_>, carved: &[u32], added: &[u32], live: &[bool], lins: &[u32]) -> Vec<u32> {
         let mut marks = Vec::new();
         let mut reset = Vec::new();
+        let mut flagged = Vec::new();
         for &s in carved {
             let Some(fp) = self.fps[s as usize].get() else { continue };
             for y in fp.y0..fp.y1 {
@@ -147,18 +168,29 @@ impl ViewState {
                         self.id[p] = NONE;
                         self.depth[p] = f32::INFINITY;
                         reset.push(p);
-                        self.tiles[(y / TILE) * self.tiles_w + x / TILE] = true;
+                        let t = (y / TILE) * self.tiles_w + x / TILE;
+                        if !self.tiles[t] {
+                            self.tiles[t] = true;
+                            flagged.push(t);
+                        }
                     }
                 }
             }
         }
-        if !reset.is_empty() {
-            let first_added = added.first().map_or(live.len(), |&s| s as usize);
-            for (s, &alive) in live.iter().enumerate().take(first_added) {
-                if alive && self.meets_flagged(s) {
-                    self.draw(s as u32, lins, false, &mut marks);
+        // Slots older than this update's additions whose footprints meet a flagged tile are drawn
+        // again (a slot meeting several such tiles is drawn more than once, which changes nothing:
+        // the depth test with its index tie-break does not depend on the drawing order).
+        let first_added = added.first().map_or(live.len(), |&s| s as usize) as u32;
+        for &t in &flagged {
+            let mut slots = std::mem::take(&mut self.tile_slots[t]);
+            slots.retain(|&(s, _)| live[s as usize]);
+            for &(s, fp) in &slots {
+                if s < first_added {
+                    self.draw_packed(s, fp, lins, false, &mut marks);
                 }
             }
+            self.tile_slots[t] = slots;
+            self.tiles[t] = false;
         }
         for &s in added {
             self.draw(s, lins, true, &mut marks);
@@ -167,60 +199,89 @@ impl ViewState {
             if self.id[p] != NONE {
                 marks.push(self.id[p]);
             }
-            self.tiles[(p / self.width / TILE) * self.tiles_w + (p % self.width) / TILE] = false;
+        }
+        marks.sort_unstable();
+        marks.dedup();
+        marks.retain(|&s| live[s as usize]);
+        self.samples.resize(live.len(), FootprintSample::default());
+        for &s in &marks {
+            self.resample(px, s);
         }
         marks
     }
+
+    /// Sample slot `s`'s visible footprint pixels again.
+    fn resample(&mut self, px: &ViewPixels<'_>, s: u32) {
+        self.samples[s as usize] = match self.fps[s as usize].get() {
+            Some(fp) => px.sample(&fp, |p| self.id[p] == s),
+            None => FootprintSample::default(),
+        };
+    }
 }
 
-#[allow(clippy::too_many_arguments)] // one voxel's visit, kept as plain arguments
-/// Per-view samples of slot `s` (voxel `v`) under the item buffers, views facing below `min_cos`
-/// dropped; centre pixels when `colour`, NCC patterns when the parameters ask for them.
-fn gather(
+/// Per-view samples of slot `s` (voxel `v`) under the item buffers with the views facing below
+/// `min_cos` dropped, with the centre pixels (for colouring).
+fn colour_samples(
     cams: &[VoxelCamera],
-    views: &[PhotoView<'_>],
+    pixels: &[ViewPixels<'_>],
     states: &[ViewState],
     v: [u32; 3],
     s: u32,
     normal: [f32; 3],
     params: &PhotoParams,
-    colour: bool,
-) -> (Vec<ViewSample>, Vec<[f32; 24]>) {
+) -> Vec<ViewSample> {
     let mut samples = Vec::new();
-    let mut patterns = Vec::new();
-    let want_ncc = !colour && params.min_ncc.is_some();
-    for ((cam, view), st) in cams.iter().zip(views).zip(states) {
+    for ((cam, px), st) in cams.iter().zip(pixels).zip(states) {
         let Some(fp) = st.fps[s as usize].get() else { continue };
         if facing(cam, cam.point(v, [0.0; 3]), normal) < params.min_cos {
             continue;
         }
-        let visible = |x: usize, y: usize| st.id[y * st.width + x] == s;
-        let (count, mean) = sample_view(cam, view, &fp, visible);
+        let visible = |p: usize| st.id[p] == s;
+        let FootprintSample { count, mean, .. } = px.sample(&fp, visible);
         if count > 0 {
-            let centre = if colour { centre_sample(cam, view, v, visible) } else { None };
-            samples.push(ViewSample { count, mean, centre });
-            if want_ncc {
-                if let Some(p) = ncc_pattern(cam, view, v, visible) {
-                    patterns.push(p);
-                }
+            samples.push(ViewSample { count, mean, centre: centre_sample(cam, px, v, visible) });
+        }
+    }
+    samples
+}
+
+/// The verdict on slot `s` (voxel `v`, estimated outward normal `normal`) from its cached
+/// per-view samples: `None` when a view sees it on its silhouette's contour band (such voxels are
+/// kept, see `photo_consistency::ViewPixels`), else its per-view samples (views facing below
+/// `min_cos` dropped) and NCC patterns when the parameters ask for them.
+fn judge_samples(
+    cams: &[VoxelCamera],
+    pixels: &[ViewPixels<'_>],
+    states: &[ViewState],
+    v: [u32; 3],
+    s: u32,
+    normal: [f32; 3],
+    params: &PhotoParams,
+) -> Option<(Vec<ViewSample>, Vec<[f32; 24]>)> {
+    let mut samples = Vec::with_capacity(cams.len());
+    let mut patterns = Vec::new();
+    for ((cam, px), st) in cams.iter().zip(pixels).zip(states) {
+        let FootprintSample { count, mean, rim } = st.samples[s as usize];
+        if rim {
+            return None;
+        }
+        if count == 0 || facing(cam, cam.point(v, [0.0; 3]), normal) < params.min_cos {
+            continue;
+        }
+        samples.push(ViewSample { count, mean, centre: None });
+        if params.min_ncc.is_some() {
+            if let Some(p) = ncc_pattern(cam, px, v, |p| st.id[p] == s) {
+                patterns.push(p);
             }
         }
     }
-    (samples, patterns)
-}
-
-/// Whether slot `s` touches a view's silhouette contour on pixels it owns (see
-/// `photo_consistency::touches_contour`): such voxels are kept.
-fn on_rim(views: &[PhotoView<'_>], states: &[ViewState], s: u32) -> bool {
-    views.iter().zip(states).any(|(view, st)| {
-        st.fps[s as usize].get().is_some_and(|fp| touches_contour(view, &fp, |x, y| st.id[y * st.width + x] == s))
-    })
+    Some((samples, patterns))
 }
 
 /// The carver's state over one run.
 struct Carver<'a> {
     cams: Vec<VoxelCamera>,
-    views: &'a [PhotoView<'a>],
+    pixels: Vec<ViewPixels<'a>>,
     dense: Dense,
     /// Voxel of each slot.
     voxels: Vec<[u32; 3]>,
@@ -237,7 +298,7 @@ impl<'a> Carver<'a> {
         let states = cams.iter().map(ViewState::new).collect();
         let mut c = Carver {
             cams,
-            views,
+            pixels: ViewPixels::all(views),
             dense: Dense::from(start),
             voxels: Vec::new(),
             lins: Vec::new(),
@@ -248,10 +309,14 @@ impl<'a> Carver<'a> {
         c.add(&surface);
         let all: Vec<u32> = (0..c.voxels.len() as u32).collect();
         let lins = &c.lins;
-        c.states.par_iter_mut().for_each(|st| {
+        c.states.par_iter_mut().zip(&c.pixels).for_each(|(st, px)| {
             let mut none = Vec::new();
             for &s in &all {
                 st.draw(s, lins, false, &mut none);
+            }
+            st.samples = vec![FootprintSample::default(); all.len()];
+            for &s in &all {
+                st.resample(px, s);
             }
         });
         c
@@ -267,9 +332,7 @@ impl<'a> Carver<'a> {
             self.lins.push(i as u32);
             self.live.push(true);
         }
-        self.states.par_iter_mut().zip(&self.cams).for_each(|(st, cam)| {
-            st.fps.extend(voxels.iter().map(|&v| Packed::of(cam.footprint(v))));
-        });
+        self.states.par_iter_mut().zip(&self.cams).for_each(|(st, cam)| st.extend(cam, first, voxels));
         (first..self.voxels.len() as u32).collect()
     }
 
@@ -279,11 +342,8 @@ impl<'a> Carver<'a> {
 
     fn consistent(&self, s: u32, params: &PhotoParams) -> bool {
         let v = self.voxels[s as usize];
-        if on_rim(self.views, &self.states, s) {
-            return true;
-        }
-        let (samples, patterns) = gather(&self.cams, self.views, &self.states, v, s, self.normal(v), params, false);
-        is_consistent(&samples, &patterns, params)
+        judge_samples(&self.cams, &self.pixels, &self.states, v, s, self.normal(v), params)
+            .is_none_or(|(samples, patterns)| is_consistent(&samples, &patterns, params))
     }
 
     /// Carve `carved` (live slots); returns the slots to judge next.
@@ -329,7 +389,12 @@ impl<'a> Carver<'a> {
         exposed.sort_unstable_by_key(|&v| self.dense.index(v));
         let added = self.add(&exposed);
         let (live, lins) = (&self.live, &self.lins);
-        let marks: Vec<Vec<u32>> = self.states.par_iter_mut().map(|st| st.update(carved, &added, live, lins)).collect();
+        let marks: Vec<Vec<u32>> = self
+            .states
+            .par_iter_mut()
+            .zip(&self.pixels)
+            .map(|(st, px)| st.update(px, carved, &added, live, lins))
+            .collect();
         // Slots of the touched neighbours: binary search over the (sorted by slot, and slots are
         // handed out in batches of increasing index) is not possible across batches, so map them.
         let mut todo: Vec<u32> = added.clone();
@@ -342,11 +407,11 @@ impl<'a> Carver<'a> {
                 }
             }
         }
-        todo.extend(marks.into_iter().flatten());
-        todo.sort_unstable();
-        todo.dedup();
-        todo.retain(|&s| self.live[s as usize]);
-        todo
+        let mut flagged = vec![false; self.voxels.len()];
+        for s in todo.drain(..).chain(marks.into_iter().flatten()) {
+            flagged[s as usize] = self.live[s as usize];
+        }
+        (0..flagged.len() as u32).filter(|&s| flagged[s as usize]).collect()
     }
 
     fn coloured_surface(&self, params: &PhotoParams) -> ColouredSurface {
@@ -356,7 +421,7 @@ impl<'a> Carver<'a> {
             .par_iter()
             .map(|&s| {
                 let v = self.voxels[s as usize];
-                let (samples, _) = gather(&self.cams, self.views, &self.states, v, s, self.normal(v), params, true);
+                let samples = colour_samples(&self.cams, &self.pixels, &self.states, v, s, self.normal(v), params);
                 (surface_colour(&samples), !samples.is_empty())
             })
             .collect();
@@ -376,7 +441,7 @@ pub(super) fn surface_spreads(start: &Occupancy, views: &[PhotoView<'_>], params
         .into_par_iter()
         .filter_map(|s| {
             let v = c.voxels[s as usize];
-            let (samples, _) = gather(&c.cams, c.views, &c.states, v, s, c.normal(v), params, false);
+            let samples = colour_samples(&c.cams, &c.pixels, &c.states, v, s, c.normal(v), params);
             (samples.len() >= params.min_views).then(|| colour_spread(&samples))
         })
         .collect()
@@ -416,8 +481,11 @@ pub(super) fn carve(
     let restored = restore_silhouettes(start, &mut c.dense, views);
     stats.carved -= restored;
     let occupancy = c.dense.to_occupancy(grid);
-    let surface =
-        if restored == 0 { c.coloured_surface(params) } else { super::colour_dense(&c.dense, &c.cams, views, params) };
+    let surface = if restored == 0 {
+        c.coloured_surface(params)
+    } else {
+        super::colour_dense(&c.dense, &c.cams, &c.pixels, params)
+    };
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats })
 }

@@ -19,7 +19,7 @@ use super::{
     claim, colour_dense, colouring_verdict, ordinal_direction, restore_silhouettes, Dense, PhotoModel, PhotoStats,
 };
 use crate::pipeline::occupancy::Occupancy;
-use crate::pipeline::photo_consistency::{check_inputs, PhotoError, PhotoParams, PhotoView, VoxelCamera};
+use crate::pipeline::photo_consistency::{check_inputs, PhotoError, PhotoParams, PhotoView, ViewPixels, VoxelCamera};
 
 /// Brick edge, voxels.
 const B: u32 = 4;
@@ -60,6 +60,7 @@ pub(super) fn color_along(
     let grid = *start.grid();
     let d = d.map(|x| x as f32);
     let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let pixels = ViewPixels::all(views);
     let mut dense = Dense::from(start);
     let key = |v: [u32; 3]| (d[0] * v[0] as f32 + d[1] * v[1] as f32 + d[2] * v[2] as f32).floor() as i32;
 
@@ -97,7 +98,7 @@ pub(super) fn color_along(
     let mut active: Vec<usize> = Vec::new();
     let mut layer_voxels: Vec<[u32; 3]> = Vec::new();
     let (Some(l0), Some(l1)) = (bricks.first().map(|b| b.first), bricks.iter().map(|b| b.last).max()) else {
-        let surface = colour_dense(&dense, &cams, views, params);
+        let surface = colour_dense(&dense, &cams, &pixels, params);
         return Ok(PhotoModel { occupancy: start.clone(), surface, stats });
     };
     for layer in l0..=l1 {
@@ -132,7 +133,7 @@ pub(super) fn color_along(
         }
         stats.iterations += 1;
         let verdicts: Vec<Option<bool>> =
-            layer_voxels.par_iter().map(|&v| colouring_verdict(&dense, &cams, views, &claimed, v, params)).collect();
+            layer_voxels.par_iter().map(|&v| colouring_verdict(&dense, &cams, &pixels, &claimed, v, params)).collect();
         stats.visits += layer_voxels.len() as u64;
         for (&v, verdict) in layer_voxels.iter().zip(&verdicts) {
             match verdict {
@@ -147,7 +148,7 @@ pub(super) fn color_along(
     }
     stats.carved -= restore_silhouettes(start, &mut dense, views);
     let occupancy = dense.to_occupancy(grid);
-    let surface = colour_dense(&dense, &cams, views, params);
+    let surface = colour_dense(&dense, &cams, &pixels, params);
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats })
 }
