@@ -1,6 +1,7 @@
 //! End-to-end: every scan's mesh is one closed, consistently oriented component without cavities,
-//! simplified within the stated error bound (`[reconstruction.mesh] max_error_voxels`), as its
-//! report says; checked on the model.ply the scan wrote, not only on the report.
+//! simplified by default within the stated error bound (`[reconstruction.mesh] max_error_voxels`,
+//! a quarter voxel unless the rig says otherwise), as its report says; checked on the model.ply the
+//! scan wrote, not only on the report.
 
 mod scan_common;
 
@@ -63,26 +64,17 @@ fn every_methods_mesh_is_one_closed_simplified_component() {
         // Space carving: the relaxed visual hull of the cup.
         (
             "config/rigs/simulated.toml",
-            vec![
-                ("resolution = 128", "resolution = 64\n\n[reconstruction.mesh]\nmax_error_voxels = 0.25"),
-                ("positions = 24", "positions = 12"),
-            ],
+            vec![("resolution = 128", "resolution = 64"), ("positions = 24", "positions = 12")],
         ),
         // Voxel colouring: hundreds of floating blobs and cavities before the clean-up.
         (
             "config/rigs/voxel-coloring.toml",
-            vec![
-                ("resolution = 128", "resolution = 48\n\n[reconstruction.mesh]\nmax_error_voxels = 0.25"),
-                ("positions = 36", "positions = 12"),
-            ],
+            vec![("resolution = 128", "resolution = 48"), ("positions = 36", "positions = 12")],
         ),
         // Structured light (phase shift): TSDF surface with floating blobs.
         (
             "config/rigs/structured-light-phase.toml",
-            vec![
-                ("resolution = 128", "resolution = 64\n\n[reconstruction.mesh]\nmax_error_voxels = 0.25"),
-                ("positions = 16", "positions = 6"),
-            ],
+            vec![("resolution = 128", "resolution = 64"), ("positions = 16", "positions = 6")],
         ),
     ] {
         let dir = tempfile::tempdir().expect("tempdir");
@@ -93,7 +85,9 @@ fn every_methods_mesh_is_one_closed_simplified_component() {
         assert_eq!(topo["components"], 1, "{base}: {topo}");
         assert_eq!(topo["cavities"], 0, "{base}: {topo}");
         assert_eq!(topo["open_or_misoriented_edges"], 0, "{base}: {topo}");
+        // The rigs do not ask for a simplification: this is the default.
         let s = &report["mesh_simplification"];
+        assert_eq!(s["within_bound"], true, "{base}: {s}");
         let voxel = report["voxel_size_m"].as_f64().expect("voxel size");
         let bound = s["max_error_m"].as_f64().expect("bound");
         assert!((bound - 0.25 * voxel).abs() < 1e-12, "{base}: the bound asked for is a quarter voxel: {s}");
@@ -108,14 +102,17 @@ fn every_methods_mesh_is_one_closed_simplified_component() {
     }
 }
 
-/// Without `max_error_voxels` (default 0) nothing is simplified; the clean-up still runs.
+/// `max_error_voxels = 0` turns the simplification off; the clean-up still runs.
 #[test]
-fn simplification_is_off_by_default() {
+fn simplification_is_off_with_a_zero_bound() {
     let dir = tempfile::tempdir().expect("tempdir");
     let rig = derived_rig(
         dir.path(),
         "config/rigs/simulated.toml",
-        &[("resolution = 128", "resolution = 40"), ("positions = 24", "positions = 8")],
+        &[
+            ("resolution = 128", "resolution = 40\n\n[reconstruction.mesh]\nmax_error_voxels = 0"),
+            ("positions = 24", "positions = 8"),
+        ],
     );
     let report = run_scan(&rig, &dir.path().join("out"));
     assert!(report.get("mesh_simplification").is_none(), "{}", report["mesh_simplification"]);

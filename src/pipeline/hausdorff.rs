@@ -2,11 +2,9 @@
 //!
 //! Each surface is sampled at its vertices plus area-uniform points ([`super::chamfer::sample_mesh`]);
 //! each sample's distance to the other surface is the exact distance to its nearest triangle, found
-//! through a uniform grid of triangle bounding boxes searched in growing shells of cells. The
+//! through a dense uniform grid of triangle bounding boxes searched in growing shells of cells. The
 //! directed distance is the largest over the samples (a lower bound of the true directed Hausdorff
 //! distance that converges as the samples grow dense), the symmetric one the larger of both.
-
-use std::collections::HashMap;
 
 use rayon::prelude::*;
 
@@ -28,67 +26,120 @@ pub struct Hausdorff {
     pub samples: [usize; 2],
 }
 
-/// Nearest-triangle queries over one mesh (module docs).
+/// Nearest-triangle queries over one mesh (module docs): a dense grid of cells, each listing the
+/// triangles whose bounding box reaches it (flat arrays), and the triangles' corners in `f64`.
 #[derive(Debug)]
 pub struct TriangleIndex<'a> {
     mesh: &'a TriangleMesh,
+    /// Corners of the indexed triangles, metres.
+    corners: Vec<[[f64; 3]; 3]>,
+    /// A sphere around each triangle (centre, radius; metres), to skip the exact distance to
+    /// triangles that cannot be nearer than the nearest one found.
+    spheres: Vec<([f64; 3], f64)>,
+    /// Cell edge, metres.
     cell: f64,
+    /// Corner of cell `[0, 0, 0]`, metres.
     origin: [f64; 3],
-    cells: HashMap<[i32; 3], Vec<u32>>,
-    /// Cell index range holding any triangle.
-    lo: [i32; 3],
-    hi: [i32; 3],
+    /// Cells per axis.
+    dims: [i32; 3],
+    /// The triangles of cell `c` are `items[start[c]..start[c + 1]]` (indices into `corners`).
+    start: Vec<u32>,
+    items: Vec<u32>,
 }
+
+/// Most cells per axis of a [`TriangleIndex`].
+const MAX_CELLS_PER_AXIS: f64 = 256.0;
 
 impl<'a> TriangleIndex<'a> {
     /// Index the triangles of `mesh` (those with indices out of range are left out); `None` when none is left.
     pub fn new(mesh: &'a TriangleMesh) -> Option<TriangleIndex<'a>> {
         let n = mesh.vertices.len();
-        let tris: Vec<u32> = (0..mesh.triangles.len() as u32)
-            .filter(|&t| mesh.triangles[t as usize].iter().all(|&i| (i as usize) < n))
+        let corners: Vec<[[f64; 3]; 3]> = mesh
+            .triangles
+            .iter()
+            .filter(|t| t.iter().all(|&i| (i as usize) < n))
+            .map(|t| t.map(|i| mesh.vertices[i as usize].map(f64::from)))
             .collect();
-        if tris.is_empty() {
+        if corners.is_empty() {
             return None;
         }
         // Cell edge: twice the mean bounding-box extent of a triangle, so a triangle spans few cells.
         let mut lo = [f64::INFINITY; 3];
         let mut hi = [f64::NEG_INFINITY; 3];
         let mut extent = 0.0;
-        for &t in &tris {
-            let (a, b) = bbox(mesh, t);
+        for c in &corners {
+            let (a, b) = bbox(c);
             for k in 0..3 {
                 lo[k] = lo[k].min(a[k]);
                 hi[k] = hi[k].max(b[k]);
                 extent += b[k] - a[k];
             }
         }
-        let span = (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max);
-        let cell = (2.0 * extent / (3 * tris.len()) as f64).max(span / 512.0).max(1e-9);
-        let mut index = TriangleIndex { mesh, cell, origin: lo, cells: HashMap::new(), lo: [0; 3], hi: [0; 3] };
-        let mut clo = [i32::MAX; 3];
-        let mut chi = [i32::MIN; 3];
-        for &t in &tris {
-            let (a, b) = bbox(mesh, t);
-            let (ca, cb) = (index.cell_of(a), index.cell_of(b));
-            for k in 0..3 {
-                clo[k] = clo[k].min(ca[k]);
-                chi[k] = chi[k].max(cb[k]);
-            }
-            for z in ca[2]..=cb[2] {
-                for y in ca[1]..=cb[1] {
-                    for x in ca[0]..=cb[0] {
-                        index.cells.entry([x, y, z]).or_default().push(t);
-                    }
-                }
-            }
+        if !(0..3).all(|k| lo[k].is_finite() && hi[k].is_finite()) {
+            return None;
         }
-        index.lo = clo;
-        index.hi = chi;
+        let span = (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max);
+        let cell = (2.0 * extent / (3 * corners.len()) as f64).max(span / MAX_CELLS_PER_AXIS).max(1e-9);
+        let dims = [0, 1, 2].map(|k| (((hi[k] - lo[k]) / cell).floor() as i32 + 1).max(1));
+        let spheres = corners
+            .iter()
+            .map(|c| {
+                let centre = [0, 1, 2].map(|k| (c[0][k] + c[1][k] + c[2][k]) / 3.0);
+                let r2 = c.iter().map(|p| dist2(*p, centre)).fold(0.0, f64::max);
+                (centre, r2.sqrt())
+            })
+            .collect();
+        let mut index =
+            TriangleIndex { mesh, corners, spheres, cell, origin: lo, dims, start: Vec::new(), items: Vec::new() };
+        let cells = dims.iter().map(|&d| d as usize).product::<usize>();
+        let mut count = vec![0u32; cells + 1];
+        for c in &index.corners {
+            index.for_cells(c, |i| count[i] += 1);
+        }
+        let mut total = 0u32;
+        for c in count.iter_mut() {
+            let k = *c;
+            *c = total;
+            total += k;
+        }
+        let mut fill = count.clone();
+        let mut items = vec![0u32; total as usize];
+        for (t, c) in index.corners.iter().enumerate() {
+            index.for_cells(c, |i| {
+                items[fill[i] as usize] = t as u32;
+                fill[i] += 1;
+            });
+        }
+        index.start = count;
+        index.items = items;
         Some(index)
+    }
+
+    /// The mesh indexed.
+    pub fn mesh(&self) -> &TriangleMesh {
+        self.mesh
     }
 
     fn cell_of(&self, p: [f64; 3]) -> [i32; 3] {
         [0, 1, 2].map(|k| ((p[k] - self.origin[k]) / self.cell).floor().clamp(-1e9, 1e9) as i32)
+    }
+
+    fn cell_index(&self, c: [i32; 3]) -> usize {
+        (c[0] as usize) + self.dims[0] as usize * ((c[1] as usize) + self.dims[1] as usize * c[2] as usize)
+    }
+
+    /// Call `f` with the index of every cell the triangle's bounding box reaches.
+    fn for_cells(&self, corners: &[[f64; 3]; 3], mut f: impl FnMut(usize)) {
+        let (a, b) = bbox(corners);
+        let clamp = |c: [i32; 3]| [0, 1, 2].map(|k| c[k].clamp(0, self.dims[k] - 1));
+        let (ca, cb) = (clamp(self.cell_of(a)), clamp(self.cell_of(b)));
+        for z in ca[2]..=cb[2] {
+            for y in ca[1]..=cb[1] {
+                for x in ca[0]..=cb[0] {
+                    f(self.cell_index([x, y, z]));
+                }
+            }
+        }
     }
 
     /// Distance from `q` to the nearest triangle, metres.
@@ -96,22 +147,30 @@ impl<'a> TriangleIndex<'a> {
         let c = self.cell_of(q);
         let mut best = f64::INFINITY;
         // Shells of cells around q's cell; after shell r every unvisited cell is at least r cells away.
-        let reach = (0..3).map(|k| (c[k] - self.lo[k]).abs().max((self.hi[k] - c[k]).abs())).max().unwrap_or(0);
+        let reach = (0..3).map(|k| (c[k]).abs().max((self.dims[k] - 1 - c[k]).abs())).max().unwrap_or(0);
         for r in 0..=reach {
-            for z in c[2] - r..=c[2] + r {
-                for y in c[1] - r..=c[1] + r {
-                    for x in c[0] - r..=c[0] + r {
-                        let on_shell = (x - c[0]).abs() == r || (y - c[1]).abs() == r || (z - c[2]).abs() == r;
-                        if !on_shell {
+            let lo = [0, 1, 2].map(|k| (c[k] - r).max(0));
+            let hi = [0, 1, 2].map(|k| (c[k] + r).min(self.dims[k] - 1));
+            for z in lo[2]..=hi[2] {
+                for y in lo[1]..=hi[1] {
+                    let inner = (z - c[2]).abs() < r && (y - c[1]).abs() < r;
+                    let mut x = lo[0];
+                    while x <= hi[0] {
+                        // Inside the shell's block only its two x faces are on the shell.
+                        if inner && (x - c[0]).abs() < r {
+                            x = c[0] + r;
                             continue;
                         }
-                        if let Some(ts) = self.cells.get(&[x, y, z]) {
-                            for &t in ts {
-                                let tri = self.mesh.triangles[t as usize]
-                                    .map(|i| self.mesh.vertices[i as usize].map(f64::from));
-                                best = best.min(point_triangle_distance2(q, &tri));
+                        let i = self.cell_index([x, y, z]);
+                        for &t in &self.items[self.start[i] as usize..self.start[i + 1] as usize] {
+                            let (centre, radius) = self.spheres[t as usize];
+                            let gap = dist2(q, centre).sqrt() - radius;
+                            if gap > 0.0 && gap * gap >= best {
+                                continue;
                             }
+                            best = best.min(point_triangle_distance2(q, &self.corners[t as usize]));
                         }
+                        x += 1;
                     }
                 }
             }
@@ -153,10 +212,13 @@ pub fn hausdorff_distance(a: &TriangleMesh, b: &TriangleMesh, samples: usize) ->
     })
 }
 
-fn bbox(mesh: &TriangleMesh, t: u32) -> ([f64; 3], [f64; 3]) {
-    let tri = mesh.triangles[t as usize].map(|i| mesh.vertices[i as usize]);
-    let lo = [0, 1, 2].map(|k| f64::from(tri[0][k].min(tri[1][k]).min(tri[2][k])));
-    let hi = [0, 1, 2].map(|k| f64::from(tri[0][k].max(tri[1][k]).max(tri[2][k])));
+fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {
+    (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)
+}
+
+fn bbox(tri: &[[f64; 3]; 3]) -> ([f64; 3], [f64; 3]) {
+    let lo = [0, 1, 2].map(|k| tri[0][k].min(tri[1][k]).min(tri[2][k]));
+    let hi = [0, 1, 2].map(|k| tri[0][k].max(tri[1][k]).max(tri[2][k]));
     (lo, hi)
 }
 
