@@ -11,11 +11,13 @@
 //! a point to the camera that saw it or to the laser that lit it.
 //!
 //! Outputs: `cloud.ply` (points with normals and colours, object frame, metres), `model.ply` /
-//! `model.stl` / `model.obj` (the mesh, vertex colours from the nearest cloud point), `voxels.ply`
-//! (the solid's voxel centres), `frames/pos_NNN_off.png` and `frames/pos_NNN_laser_K.png` (every
-//! frame, for resume and reprocessing), and `report.json` with a `laser` section (per-laser planes
-//! and point counts) and, on a simulated rig, `ground_truth.chamfer_rel`: the symmetric Chamfer
-//! distance between the mesh and the true surface over the scene's bounding-box diagonal.
+//! `model.stl` / `model.obj` (the mesh, vertex colours from the nearest cloud point, or for a
+//! vertex farther than `COLOUR_REACH_VOXELS` from every point the nearest cell of the thinned
+//! cloud), `voxels.ply` (the solid's voxel centres), `frames/pos_NNN_off.png` and
+//! `frames/pos_NNN_laser_K.png` (every frame, for resume and reprocessing), and `report.json` with
+//! a `laser` section (per-laser planes and point counts) and, on a simulated rig,
+//! `ground_truth.chamfer_rel`: the symmetric Chamfer distance between the mesh and the true surface
+//! over the scene's bounding-box diagonal.
 //!
 //! The laser planes are the rig file's `[[lights.laser]]` planes (calibrated ones go there; see
 //! [`crate::pipeline::laser::calibrate_laser_plane`]).
@@ -24,6 +26,7 @@ use crate::scan::preview;
 use std::time::Instant;
 
 use nalgebra::Vector3;
+use rayon::prelude::*;
 
 use super::{frame_name, stored_frame};
 use crate::acquisition::{self, LaserView};
@@ -41,6 +44,9 @@ use crate::scan::{silhouette_params, ScanError, ScanEvent};
 
 /// Views whose silhouettes are kept for the re-projection check (evenly spaced over the turn).
 const REPROJECTION_VIEWS: usize = 24;
+/// Distance (voxel edges) within which a mesh vertex takes the colour of its nearest cloud point;
+/// farther vertices take that of the nearest cell of the cloud thinned to cells this size.
+const COLOUR_REACH_VOXELS: f64 = 4.0;
 
 /// Why the laser part of a scan failed.
 #[derive(Debug, thiserror::Error)]
@@ -373,16 +379,26 @@ impl ScanFlow for LaserFlow {
         let mesh_params = CloudMeshParams { k: lc.mesh_neighbours, ..CloudMeshParams::default() };
         let (solid, mut mesh, mesh_stats) =
             solid_and_mesh_from_cloud_with_free_space(&cloud, &grid, &mesh_params, Some(&free)).map_err(cloud_err)?;
-        // Vertex colours: the nearest cloud point's.
+        // Vertex colours: the nearest cloud point's. A vertex farther than COLOUR_REACH_VOXELS from
+        // every point (a surface no laser lit, such as the floor closing a cup's foot) takes the
+        // colour of the nearest cell of the cloud thinned to cells of that size: the search over
+        // every point's cells would otherwise cross many empty shells per such vertex.
         if let Some(cc) = cloud.colors() {
+            let reach = (COLOUR_REACH_VOXELS * grid.voxel_size) as f32;
             let index = KnnIndex::new(cloud.points());
-            let mut buf = Vec::new();
+            let coarse = cloud.voxel_downsample(f64::from(reach)).map_err(cloud_err)?;
+            let coarse_index = KnnIndex::with_cell(coarse.points().to_vec(), reach);
+            let coarse_colours = coarse.colors().unwrap_or(&[]);
             let colors = mesh
                 .vertices
-                .iter()
-                .map(|v| {
-                    index.k_nearest(v, 1, &mut buf);
-                    buf.first().map_or([128; 3], |&(_, i)| cc[i as usize])
+                .par_iter()
+                .map_init(Vec::new, |buf, v| {
+                    index.k_nearest_within(v, 1, reach, buf);
+                    if let Some(&(_, i)) = buf.first() {
+                        return cc[i as usize];
+                    }
+                    coarse_index.k_nearest(v, 1, buf);
+                    buf.first().and_then(|&(_, i)| coarse_colours.get(i as usize).copied()).unwrap_or([128; 3])
                 })
                 .collect();
             mesh.colors = Some(colors);
