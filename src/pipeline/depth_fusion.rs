@@ -89,8 +89,14 @@ pub struct IntegrateStats {
 pub struct Tsdf {
     grid: VoxelGrid,
     params: FusionParams,
+    /// Per voxel, the fused value as of its brick's last settling (see `pending`).
     value: Vec<f32>,
+    /// Per voxel, the weight as of its brick's last settling.
     weight: Vec<f32>,
+    /// Per brick of `BRICK`³ voxels (x fastest), free-space samples given to the whole brick and not
+    /// yet folded into its voxels: they are folded in, one by one with the same arithmetic, before the
+    /// brick is next updated voxel by voxel, and on the fly when a voxel is read.
+    pending: Vec<u32>,
     views: usize,
 }
 
@@ -104,7 +110,8 @@ impl Tsdf {
             return Err(DepthFusionError::EmptyGrid);
         }
         let n = grid.len();
-        Ok(Tsdf { grid, params, value: vec![1.0; n], weight: vec![0.0; n], views: 0 })
+        let bricks = grid.dims.iter().map(|d| d.div_ceil(BRICK)).product();
+        Ok(Tsdf { grid, params, value: vec![1.0; n], weight: vec![0.0; n], pending: vec![0; bricks], views: 0 })
     }
 
     /// The grid.
@@ -120,8 +127,18 @@ impl Tsdf {
     /// The fused value of voxel `(i, j, k)` (signed distance / truncation, positive outside) and its
     /// weight (0 = never updated).
     pub fn get(&self, i: usize, j: usize, k: usize) -> (f32, f32) {
+        self.voxel(i, j, k)
+    }
+
+    /// Voxel `(i, j, k)`'s value and weight, with its brick's pending free-space samples folded in.
+    #[inline]
+    fn voxel(&self, i: usize, j: usize, k: usize) -> (f32, f32) {
         let idx = self.grid.index(i, j, k);
-        (self.value[idx], self.weight[idx])
+        let [nbx, nby] = [0, 1].map(|a| self.grid.dims[a].div_ceil(BRICK));
+        let pending = self.pending[i / BRICK + nbx * (j / BRICK + nby * (k / BRICK))];
+        let (mut value, mut weight) = (self.value[idx], self.weight[idx]);
+        settle(&mut value, &mut weight, pending, self.params.max_weight.max(1.0));
+        (value, weight)
     }
 
     /// Fuse one depth map: `depth_m` is row-major, `camera.width * camera.height` values, metres along
@@ -185,17 +202,19 @@ impl Tsdf {
             .value
             .par_chunks_mut(nx * ny * BRICK)
             .zip(self.weight.par_chunks_mut(nx * ny * BRICK))
+            .zip(self.pending.par_chunks_mut(nx.div_ceil(BRICK) * ny.div_ceil(BRICK)))
             .enumerate()
             .map_init(
                 || (RowBuffers::new(nx), Vec::new()),
-                |(buf, bricks), (kb, (values, weights))| {
+                |(buf, bricks), (kb, ((values, weights), pending))| {
+                    let slab = Slab { kb, values, weights, pending };
                     #[cfg(target_arch = "x86_64")]
                     if avx2 {
                         // SAFETY: the CPU supports AVX2 (checked at run time by `has_avx2`).
-                        return unsafe { slabs.fuse_avx2(kb, values, weights, buf, bricks) };
+                        return unsafe { slabs.fuse_avx2(slab, buf, bricks) };
                     }
                     let _ = avx2;
-                    slabs.fuse(kb, values, weights, buf, bricks)
+                    slabs.fuse(slab, buf, bricks)
                 },
             )
             .reduce(IntegrateStats::default, |a, b| IntegrateStats {
@@ -211,8 +230,8 @@ impl Tsdf {
     /// The fused solid: voxels with a negative value, and voxels never updated (hidden in every view).
     pub fn occupancy(&self) -> Occupancy {
         Occupancy::from_index_fn(self.grid, |i, j, k| {
-            let idx = self.grid.index(i, j, k);
-            self.weight[idx] == 0.0 || self.value[idx] < 0.0
+            let (value, weight) = self.voxel(i, j, k);
+            weight == 0.0 || value < 0.0
         })
     }
 
@@ -232,11 +251,11 @@ impl Tsdf {
         }
         let mut c = [0.0f64; 8];
         for (n, cv) in c.iter_mut().enumerate() {
-            let idx = g.index(base[0] + (n & 1), base[1] + ((n >> 1) & 1), base[2] + ((n >> 2) & 1));
-            if self.weight[idx] == 0.0 {
+            let (value, weight) = self.voxel(base[0] + (n & 1), base[1] + ((n >> 1) & 1), base[2] + ((n >> 2) & 1));
+            if weight == 0.0 {
                 return None;
             }
-            *cv = f64::from(self.value[idx]);
+            *cv = f64::from(value);
         }
         let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
         let value = lerp(
@@ -317,6 +336,18 @@ fn has_avx2() -> bool {
     }
 }
 
+/// One slab of `BRICK` slices of constant `z` (fewer in the last): its values, weights and pending
+/// free-space samples.
+#[derive(Debug)]
+struct Slab<'a> {
+    /// The slab's index: slices `kb * BRICK ..`.
+    kb: usize,
+    values: &'a mut [f32],
+    weights: &'a mut [f32],
+    /// Per brick of the slab, `x` fastest.
+    pending: &'a mut [u32],
+}
+
 /// One view's fusion of a slab of `BRICK` slices of constant `z`: what every slab shares.
 #[derive(Debug, Clone, Copy)]
 struct SlabFusion<'a> {
@@ -342,43 +373,59 @@ impl SlabFusion<'_> {
     /// The CPU must support AVX2.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    unsafe fn fuse_avx2(
-        &self,
-        kb: usize,
-        values: &mut [f32],
-        weights: &mut [f32],
-        buf: &mut RowBuffers,
-        bricks: &mut Vec<Brick>,
-    ) -> IntegrateStats {
-        self.fuse(kb, values, weights, buf, bricks)
+    unsafe fn fuse_avx2(&self, slab: Slab<'_>, buf: &mut RowBuffers, bricks: &mut Vec<Brick>) -> IntegrateStats {
+        self.fuse(slab, buf, bricks)
     }
 
-    /// Fuse slab `kb` (slices `kb * BRICK ..`, fewer in the last slab), given its values and weights.
+    /// Fuse one slab. A brick given the free-space sample only counts it as pending; a brick done
+    /// voxel by voxel first folds in what it has pending.
     #[inline(always)]
-    fn fuse(
-        &self,
-        kb: usize,
-        values: &mut [f32],
-        weights: &mut [f32],
-        buf: &mut RowBuffers,
-        bricks: &mut Vec<Brick>,
-    ) -> IntegrateStats {
-        let [nx, ny, _] = self.grid.dims;
+    fn fuse(&self, slab: Slab<'_>, buf: &mut RowBuffers, bricks: &mut Vec<Brick>) -> IntegrateStats {
+        let Slab { kb, values, weights, pending } = slab;
+        let [nx, ny, nz] = self.grid.dims;
         let (nbx, nby) = (nx.div_ceil(BRICK), ny.div_ceil(BRICK));
+        let depth = (nz - kb * BRICK).min(BRICK);
         let mut stats = IntegrateStats::default();
         bricks.clear();
-        match self.culler {
-            Some(culler) => {
-                for jb in 0..nby {
-                    for ib in 0..nbx {
-                        let brick = culler.classify(&self.grid, [ib, jb, kb]);
-                        stats.bricks_skipped += u64::from(brick == Brick::Skip);
-                        stats.bricks_free += u64::from(brick == Brick::Free);
-                        bricks.push(brick);
+        for jb in 0..nby {
+            for ib in 0..nbx {
+                let brick = match self.culler {
+                    Some(culler) => culler.classify([ib, jb, kb]),
+                    None => Brick::Mixed,
+                };
+                let b = ib + nbx * jb;
+                let (i0, i1) = (ib * BRICK, ((ib + 1) * BRICK).min(nx));
+                let (j0, j1) = (jb * BRICK, ((jb + 1) * BRICK).min(ny));
+                let settle_brick = |values: &mut [f32], weights: &mut [f32], count: u32| {
+                    for dk in 0..depth {
+                        for j in j0..j1 {
+                            let at = nx * (j + ny * dk);
+                            let (v, w) = (&mut values[at + i0..at + i1], &mut weights[at + i0..at + i1]);
+                            settle_run(v, w, count, self.update.max_weight);
+                        }
+                    }
+                };
+                match brick {
+                    Brick::Skip => stats.bricks_skipped += 1,
+                    Brick::Free => {
+                        stats.bricks_free += 1;
+                        stats.updated += ((i1 - i0) * (j1 - j0) * depth) as u64;
+                        if pending[b] == u32::MAX {
+                            settle_brick(values, weights, pending[b]);
+                            pending[b] = 0;
+                        }
+                        pending[b] += 1;
+                    }
+                    Brick::Mixed => {
+                        if pending[b] > 0 {
+                            settle_brick(values, weights, pending[b]);
+                            pending[b] = 0;
+                        }
                     }
                 }
+                // What the rows below still have to do: free bricks are done.
+                bricks.push(if brick == Brick::Mixed { Brick::Mixed } else { Brick::Skip });
             }
-            None => bricks.resize(nbx * nby, Brick::Mixed),
         }
         for (dk, (values, weights)) in
             values.chunks_exact_mut(nx * ny).zip(weights.chunks_exact_mut(nx * ny)).enumerate()
@@ -397,8 +444,7 @@ impl SlabFusion<'_> {
                     let i1 = i1.min(nx);
                     let (values, weights) = (&mut values[i0..i1], &mut weights[i0..i1]);
                     match brick {
-                        Brick::Skip => {}
-                        Brick::Free => stats.updated += u64::from(self.update.free(values, weights)),
+                        Brick::Skip | Brick::Free => {}
                         Brick::Mixed => {
                             let (u, n) = self.voxels(j, k, i0..i1, values, weights, buf);
                             stats.updated += u64::from(u);
@@ -464,6 +510,12 @@ impl SlabFusion<'_> {
 #[derive(Debug)]
 struct BrickCuller {
     camera: CameraModel,
+    /// Voxels along x, y, z.
+    dims: [usize; 3],
+    /// Camera coordinates of voxel `(0, 0, 0)`'s centre, metres.
+    origin: [f64; 3],
+    /// Camera-frame step from one voxel to the next along the grid's x, y and z, metres.
+    axes: [[f64; 3]; 3],
     /// Truncation distance, metres.
     trunc_m: f64,
     /// Bound on the error of the per-voxel path's `f32` camera coordinates (and on the rounding of
@@ -521,21 +573,47 @@ impl BrickCuller {
                 camera.pose.apply(&c).amax()
             })
             .fold(0.0, f64::max);
-        BrickCuller { camera: *camera, trunc_m, pad_m: 1e-5 * (scale_m + trunc_m), scale_m, tiles_x, key_min, key_max }
+        let origin = camera.pose.apply(&grid.centre(0, 0, 0));
+        let axes = [0, 1, 2].map(|a| {
+            let step = camera.pose.rotation.column(a) * grid.voxel_size;
+            [step.x, step.y, step.z]
+        });
+        BrickCuller {
+            camera: *camera,
+            dims: grid.dims,
+            origin: [origin.x, origin.y, origin.z],
+            axes,
+            trunc_m,
+            pad_m: 1e-5 * (scale_m + trunc_m),
+            scale_m,
+            tiles_x,
+            key_min,
+            key_max,
+        }
     }
 
     /// What the view does to brick `b` (voxels `b * BRICK ..` along each axis).
-    fn classify(&self, grid: &VoxelGrid, b: [usize; 3]) -> Brick {
-        let lo = b.map(|b| b * BRICK);
-        let hi = [0, 1, 2].map(|a| ((b[a] + 1) * BRICK).min(grid.dims[a]) - 1);
+    fn classify(&self, b: [usize; 3]) -> Brick {
+        // Camera coordinates of the brick's corner voxel centres: affine in the voxel index (plain
+        // loops over fixed-size arrays, which the compiler unrolls).
+        let mut ends = [[[0.0f64; 3]; 2]; 3];
+        for a in 0..3 {
+            let first = (b[a] * BRICK) as f64;
+            let last = (((b[a] + 1) * BRICK).min(self.dims[a]) - 1) as f64;
+            for c in 0..3 {
+                ends[a][0][c] = first * self.axes[a][c];
+                ends[a][1][c] = last * self.axes[a][c];
+            }
+        }
         let mut corners = [[0.0f64; 3]; 8];
         let (mut z_min, mut z_max) = (f64::INFINITY, f64::NEG_INFINITY);
         for (n, corner) in corners.iter_mut().enumerate() {
-            let pick = |a: usize| if n >> a & 1 == 0 { lo[a] } else { hi[a] };
-            let c = self.camera.pose.apply(&grid.centre(pick(0), pick(1), pick(2)));
-            *corner = [c.x, c.y, c.z];
-            z_min = z_min.min(c.z);
-            z_max = z_max.max(c.z);
+            let (ex, ey, ez) = (&ends[0][n & 1], &ends[1][(n >> 1) & 1], &ends[2][(n >> 2) & 1]);
+            for c in 0..3 {
+                corner[c] = self.origin[c] + ex[c] + ey[c] + ez[c];
+            }
+            z_min = z_min.min(corner[2]);
+            z_max = z_max.max(corner[2]);
         }
         if z_max < -self.pad_m {
             return Brick::Skip; // behind the camera
@@ -548,11 +626,16 @@ impl BrickCuller {
         let (mut u_min, mut u_max, mut v_min, mut v_max) =
             (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
         let mut slope = 0.0f64;
-        for [x, y, z] in corners {
-            let (x, y) = (x / z, y / z);
+        for &[x, y, z] in &corners {
+            let r = 1.0 / z;
+            let (x, y) = (x * r, y * r);
             let (u, v) = (i.fx * x + i.skew * y + i.cx, i.fy * y + i.cy);
-            (u_min, u_max, v_min, v_max) = (u_min.min(u), u_max.max(u), v_min.min(v), v_max.max(v));
-            slope = slope.max(x.abs() + y.abs());
+            u_min = if u < u_min { u } else { u_min };
+            u_max = if u > u_max { u } else { u_max };
+            v_min = if v < v_min { v } else { v_min };
+            v_max = if v > v_max { v } else { v_max };
+            let s = x.abs() + y.abs();
+            slope = if s > slope { s } else { slope };
         }
         // Pixel error of the f32 projection: coordinates off by `pad_m`, divided by `z`.
         let pad_px = 0.01 + (i.fx.abs() + i.fy.abs() + i.skew.abs()) * self.pad_m / z_min * (1.0 + slope);
@@ -723,20 +806,45 @@ impl Update {
     }
 }
 
-impl Update {
-    /// Fold the free-space sample (1) into every voxel of a run, with the arithmetic [`Update::row`]
-    /// uses for a voxel on an empty pixel or in front of the surface by at least the truncation;
-    /// returns the voxels updated (all).
-    #[inline(always)]
-    fn free(&self, values: &mut [f32], weights: &mut [f32]) -> u32 {
-        let n = values.len().min(weights.len());
-        let (values, weights) = (&mut values[..n], &mut weights[..n]);
-        for i in 0..n {
-            let (v, wt) = (values[i], weights[i]);
-            values[i] = (v * wt + 1.0) / (wt + 1.0);
-            weights[i] = (wt + 1.0).min(self.max_weight);
+/// Fold `count` free-space samples into one voxel's `value` and `weight`: what [`Update::row`] does,
+/// `count` times, to a voxel on an empty pixel or in front of the surface by at least the truncation,
+/// with the same arithmetic. A value of exactly 1 stays 1 (`(w + 1) / (w + 1)`), and weights are whole
+/// numbers or the cap, exact in `f32` below 2^24, so that common case is done in one step.
+#[inline(always)]
+fn settle(value: &mut f32, weight: &mut f32, count: u32, max_weight: f32) {
+    if count == 0 {
+        return;
+    }
+    if *value == 1.0 && f64::from(*weight) + f64::from(count) <= 16_777_216.0 {
+        *weight = (*weight + count as f32).min(max_weight);
+        return;
+    }
+    for _ in 0..count {
+        let (v, wt) = (*value, *weight);
+        *value = (v * wt + 1.0) / (wt + 1.0);
+        *weight = (wt + 1.0).min(max_weight);
+    }
+}
+
+/// [`settle`] over a run of voxels; when every value is 1 and every weight small enough (the common
+/// case, far from any surface), only the weights change, in one vectorised pass.
+#[inline(always)]
+fn settle_run(values: &mut [f32], weights: &mut [f32], count: u32, max_weight: f32) {
+    const EXACT: u32 = 1 << 24;
+    if count <= EXACT {
+        let limit = (EXACT - count) as f32;
+        let ones = values.iter().fold(true, |all, &v| all & (v == 1.0));
+        let small = weights.iter().fold(true, |all, &w| all & (w <= limit));
+        if ones && small {
+            let count = count as f32;
+            for w in weights.iter_mut() {
+                *w = (*w + count).min(max_weight);
+            }
+            return;
         }
-        n as u32
+    }
+    for (v, w) in values.iter_mut().zip(weights.iter_mut()) {
+        settle(v, w, count, max_weight);
     }
 }
 
@@ -1053,6 +1161,27 @@ mod tests {
                 }
             }
         }
+        // The readers fold pending free-space samples in the same way.
+        let (a, b) = (culled.occupancy(), full.occupancy());
+        assert_eq!(a.count(), b.count());
+        for k in 0..grid.dims[2] {
+            for j in 0..grid.dims[1] {
+                for i in 0..grid.dims[0] {
+                    assert_eq!(a.get(i, j, k), b.get(i, j, k), "occupancy of {i} {j} {k}");
+                }
+            }
+        }
+        let mut sampled = 0;
+        for n in 0..2000 {
+            // Points spiralling over a sphere a little larger than the scenes' (where the field is known).
+            let (t, phi) = (n as f64 / 2000.0, n as f64 * 2.399_963);
+            let (z, r) = (1.0 - 2.0 * t, (1.0 - (1.0 - 2.0 * t).powi(2)).sqrt());
+            let p = [r * phi.cos(), r * phi.sin(), z].map(|c| c * (R + 0.002));
+            let got = culled.sample(&p);
+            assert_eq!(got, full.sample(&p), "sample at {p:?}");
+            sampled += usize::from(got.is_some());
+        }
+        assert!(sampled > 100, "{sampled} points sampled");
         (skipped, free)
     }
 
