@@ -396,32 +396,31 @@ impl SlabFusion<'_> {
                 let b = ib + nbx * jb;
                 let (i0, i1) = (ib * BRICK, ((ib + 1) * BRICK).min(nx));
                 let (j0, j1) = (jb * BRICK, ((jb + 1) * BRICK).min(ny));
-                let settle_brick = |values: &mut [f32], weights: &mut [f32], count: u32| {
+                // Fold in what is pending before a voxel-by-voxel update (or before the count
+                // would overflow).
+                let settle_now = match brick {
+                    Brick::Skip => false,
+                    Brick::Free => pending[b] == u32::MAX,
+                    Brick::Mixed => pending[b] > 0,
+                };
+                if settle_now {
                     for dk in 0..depth {
                         for j in j0..j1 {
                             let at = nx * (j + ny * dk);
                             let (v, w) = (&mut values[at + i0..at + i1], &mut weights[at + i0..at + i1]);
-                            settle_run(v, w, count, self.update.max_weight);
+                            settle_run(v, w, pending[b], self.update.max_weight);
                         }
                     }
-                };
+                    pending[b] = 0;
+                }
                 match brick {
                     Brick::Skip => stats.bricks_skipped += 1,
                     Brick::Free => {
                         stats.bricks_free += 1;
                         stats.updated += ((i1 - i0) * (j1 - j0) * depth) as u64;
-                        if pending[b] == u32::MAX {
-                            settle_brick(values, weights, pending[b]);
-                            pending[b] = 0;
-                        }
                         pending[b] += 1;
                     }
-                    Brick::Mixed => {
-                        if pending[b] > 0 {
-                            settle_brick(values, weights, pending[b]);
-                            pending[b] = 0;
-                        }
-                    }
+                    Brick::Mixed => {}
                 }
                 // What the rows below still have to do: free bricks are done.
                 bricks.push(if brick == Brick::Mixed { Brick::Mixed } else { Brick::Skip });
@@ -597,20 +596,20 @@ impl BrickCuller {
         // Camera coordinates of the brick's corner voxel centres: affine in the voxel index (plain
         // loops over fixed-size arrays, which the compiler unrolls).
         let mut ends = [[[0.0f64; 3]; 2]; 3];
-        for a in 0..3 {
+        for (a, [first_end, last_end]) in ends.iter_mut().enumerate() {
             let first = (b[a] * BRICK) as f64;
             let last = (((b[a] + 1) * BRICK).min(self.dims[a]) - 1) as f64;
-            for c in 0..3 {
-                ends[a][0][c] = first * self.axes[a][c];
-                ends[a][1][c] = last * self.axes[a][c];
+            for ((f, l), &step) in first_end.iter_mut().zip(last_end.iter_mut()).zip(&self.axes[a]) {
+                *f = first * step;
+                *l = last * step;
             }
         }
         let mut corners = [[0.0f64; 3]; 8];
         let (mut z_min, mut z_max) = (f64::INFINITY, f64::NEG_INFINITY);
         for (n, corner) in corners.iter_mut().enumerate() {
             let (ex, ey, ez) = (&ends[0][n & 1], &ends[1][(n >> 1) & 1], &ends[2][(n >> 2) & 1]);
-            for c in 0..3 {
-                corner[c] = self.origin[c] + ex[c] + ey[c] + ez[c];
+            for (c, out) in corner.iter_mut().enumerate() {
+                *out = self.origin[c] + ex[c] + ey[c] + ez[c];
             }
             z_min = z_min.min(corner[2]);
             z_max = z_max.max(corner[2]);
