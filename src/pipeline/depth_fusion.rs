@@ -146,12 +146,14 @@ impl Tsdf {
     /// `missing_is_free`); `camera` is the depth camera in the grid's (object) frame, i.e. already
     /// turned with `for_turntable_angle`.
     ///
-    /// The grid is cut into bricks of `BRICK`³ voxels. Without lens distortion each brick is first
-    /// settled as a whole where that is exact: a brick every voxel of which would
-    /// get no update (outside the image, behind the camera, or more than the truncation behind the
-    /// measured surface everywhere it projects) is skipped, and a brick every voxel of which would get
-    /// the free-space sample (every pixel it projects onto is empty or measures a surface more than the
-    /// truncation behind it) gets that sample without being projected. The other voxels go through
+    /// The grid is cut into bricks of 8³ voxels. Without lens distortion each brick is first settled
+    /// as a whole where that is exact: a brick every voxel of which would get no update (outside the
+    /// image, behind the camera, or more than the truncation behind the measured surface everywhere it
+    /// projects) is skipped, and a brick every voxel of which would get the free-space sample (every
+    /// pixel it projects onto is empty or measures a surface more than the truncation behind it) only
+    /// counts that sample as pending, without being projected or written; pending samples are folded
+    /// into the brick's voxels, in order and with the same arithmetic, before the brick is next
+    /// updated voxel by voxel, and on the fly when a voxel is read. The other voxels go through
     /// the per-voxel path: slabs of `BRICK` slices run in parallel; within a slab each run of voxels
     /// along `x` is done in three passes over small buffers: project (camera coordinates are affine in
     /// the voxel index, so a row is `start + i * step`: a few multiply-adds and one reciprocal per voxel
