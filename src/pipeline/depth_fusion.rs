@@ -16,6 +16,8 @@
 //! vertices then moved onto the TSDF's zero crossing ([`Tsdf::refine_vertices`]), which gives
 //! sub-voxel accuracy.
 
+use std::ops::Range;
+
 use rayon::prelude::*;
 
 use super::mesh::TriangleMesh;
@@ -74,6 +76,11 @@ pub struct IntegrateStats {
     pub updated: u64,
     /// Voxels within the truncation band of a measured surface.
     pub near_surface: u64,
+    /// Bricks of 8³ voxels (fewer at the grid's far faces) left alone without projecting a voxel:
+    /// outside the image, behind the camera, or hidden more than the truncation behind the surface.
+    pub bricks_skipped: u64,
+    /// Bricks of 8³ voxels given the free-space sample without projecting a voxel.
+    pub bricks_free: u64,
 }
 
 /// A TSDF over an object-frame voxel grid: per voxel a value in [-1, 1] (signed distance over the
@@ -82,8 +89,14 @@ pub struct IntegrateStats {
 pub struct Tsdf {
     grid: VoxelGrid,
     params: FusionParams,
+    /// Per voxel, the fused value as of its brick's last settling (see `pending`).
     value: Vec<f32>,
+    /// Per voxel, the weight as of its brick's last settling.
     weight: Vec<f32>,
+    /// Per brick of `BRICK`³ voxels (x fastest), free-space samples given to the whole brick and not
+    /// yet folded into its voxels: they are folded in, one by one with the same arithmetic, before the
+    /// brick is next updated voxel by voxel, and on the fly when a voxel is read.
+    pending: Vec<u32>,
     views: usize,
 }
 
@@ -97,7 +110,8 @@ impl Tsdf {
             return Err(DepthFusionError::EmptyGrid);
         }
         let n = grid.len();
-        Ok(Tsdf { grid, params, value: vec![1.0; n], weight: vec![0.0; n], views: 0 })
+        let bricks = grid.dims.iter().map(|d| d.div_ceil(BRICK)).product();
+        Ok(Tsdf { grid, params, value: vec![1.0; n], weight: vec![0.0; n], pending: vec![0; bricks], views: 0 })
     }
 
     /// The grid.
@@ -113,8 +127,18 @@ impl Tsdf {
     /// The fused value of voxel `(i, j, k)` (signed distance / truncation, positive outside) and its
     /// weight (0 = never updated).
     pub fn get(&self, i: usize, j: usize, k: usize) -> (f32, f32) {
+        self.voxel(i, j, k)
+    }
+
+    /// Voxel `(i, j, k)`'s value and weight, with its brick's pending free-space samples folded in.
+    #[inline]
+    fn voxel(&self, i: usize, j: usize, k: usize) -> (f32, f32) {
         let idx = self.grid.index(i, j, k);
-        (self.value[idx], self.weight[idx])
+        let [nbx, nby] = [0, 1].map(|a| self.grid.dims[a].div_ceil(BRICK));
+        let pending = self.pending[i / BRICK + nbx * (j / BRICK + nby * (k / BRICK))];
+        let (mut value, mut weight) = (self.value[idx], self.weight[idx]);
+        settle(&mut value, &mut weight, pending, self.params.max_weight.max(1.0));
+        (value, weight)
     }
 
     /// Fuse one depth map: `depth_m` is row-major, `camera.width * camera.height` values, metres along
@@ -122,13 +146,32 @@ impl Tsdf {
     /// `missing_is_free`); `camera` is the depth camera in the grid's (object) frame, i.e. already
     /// turned with `for_turntable_angle`.
     ///
-    /// Slabs of constant `z` run in parallel; within a slab each row of voxels along `x` is done in
-    /// three passes over small buffers: project (camera coordinates are affine in the voxel index, so
-    /// a row is `start + i * step`: a few multiply-adds and one reciprocal per voxel in `f32`,
-    /// vectorised), look the depth up (the one gather, scalar), and update value and weight without
-    /// branches (vectorised). Rows that project wholly outside the image or behind the camera are
-    /// skipped after the first pass.
+    /// The grid is cut into bricks of 8³ voxels. Without lens distortion each brick is first settled
+    /// as a whole where that is exact: a brick every voxel of which would get no update (outside the
+    /// image, behind the camera, or more than the truncation behind the measured surface everywhere it
+    /// projects) is skipped, and a brick every voxel of which would get the free-space sample (every
+    /// pixel it projects onto is empty or measures a surface more than the truncation behind it) only
+    /// counts that sample as pending, without being projected or written; pending samples are folded
+    /// into the brick's voxels, in order and with the same arithmetic, before the brick is next
+    /// updated voxel by voxel, and on the fly when a voxel is read. The other voxels go through
+    /// the per-voxel path: slabs of `BRICK` slices run in parallel; within a slab each run of voxels
+    /// along `x` is done in three passes over small buffers: project (camera coordinates are affine in
+    /// the voxel index, so a row is `start + i * step`: a few multiply-adds and one reciprocal per voxel
+    /// in `f32`, vectorised), look the depth up (the one gather, scalar), and update value and weight
+    /// without branches (vectorised). The result is the same, bit for bit, as projecting every voxel.
+    /// On x86-64 CPUs with AVX2 the same code runs compiled for 256-bit vectors (chosen at run time; the
+    /// arithmetic, without fused multiply-adds, rounds the same).
     pub fn integrate(&mut self, camera: &CameraModel, depth_m: &[f32]) -> Result<IntegrateStats, DepthFusionError> {
+        self.integrate_with(camera, depth_m, true)
+    }
+
+    /// [`Tsdf::integrate`], with the brick culling on or off (off: every voxel is projected).
+    fn integrate_with(
+        &mut self,
+        camera: &CameraModel,
+        depth_m: &[f32],
+        cull: bool,
+    ) -> Result<IntegrateStats, DepthFusionError> {
         let (w, h) = (camera.width, camera.height);
         if depth_m.len() != w as usize * h as usize {
             return Err(DepthFusionError::DepthSize { len: depth_m.len(), width: w, height: h });
@@ -137,7 +180,6 @@ impl Tsdf {
             return Err(DepthFusionError::ImageTooLarge { width: w, height: h });
         }
         let grid = self.grid;
-        let projection = RowProjection::new(camera, &grid);
         let update = Update {
             trunc: self.params.truncation_m as f32,
             inv_trunc: (1.0 / self.params.truncation_m) as f32,
@@ -145,50 +187,53 @@ impl Tsdf {
             missing_is_free: self.params.missing_is_free,
         };
         let distorted = camera.intrinsics.has_distortion();
+        let culler = (cull && !distorted)
+            .then(|| BrickCuller::new(camera, &grid, depth_m, self.params.truncation_m, self.params.missing_is_free));
+        let slabs = SlabFusion {
+            camera,
+            grid,
+            projection: RowProjection::new(camera, &grid),
+            update,
+            distorted,
+            culler: culler.as_ref(),
+            depth_m,
+        };
+        let avx2 = has_avx2();
         let [nx, ny, _] = grid.dims;
-        let (updated, near_surface) = self
+        let stats = self
             .value
-            .par_chunks_mut(nx * ny)
-            .zip(self.weight.par_chunks_mut(nx * ny))
+            .par_chunks_mut(nx * ny * BRICK)
+            .zip(self.weight.par_chunks_mut(nx * ny * BRICK))
+            .zip(self.pending.par_chunks_mut(nx.div_ceil(BRICK) * ny.div_ceil(BRICK)))
             .enumerate()
             .map_init(
-                || RowBuffers::new(nx),
-                |buf, (k, (values, weights))| {
-                    let (mut updated, mut near) = (0u64, 0u64);
-                    for (j, (values, weights)) in
-                        values.chunks_exact_mut(nx).zip(weights.chunks_exact_mut(nx)).enumerate()
-                    {
-                        let start = camera.pose.apply(&grid.centre(0, j, k)).map(|c| c as f32);
-                        let start = [start.x, start.y, start.z];
-                        let inside = if distorted {
-                            projection.project::<true>(start, &buf.ramp, &mut buf.pixel, &mut buf.z)
-                        } else {
-                            projection.project::<false>(start, &buf.ramp, &mut buf.pixel, &mut buf.z)
-                        };
-                        if !inside {
-                            continue;
-                        }
-                        for (d, &p) in buf.depth.iter_mut().zip(&buf.pixel) {
-                            // -1 (outside) becomes usize::MAX: no pixel.
-                            *d = depth_m.get(p as usize).copied().unwrap_or(f32::NAN);
-                        }
-                        let (u, n) = update.row(values, weights, &buf.depth, &buf.z);
-                        updated += u64::from(u);
-                        near += u64::from(n);
+                || (RowBuffers::new(nx), Vec::new()),
+                |(buf, bricks), (kb, ((values, weights), pending))| {
+                    let slab = Slab { kb, values, weights, pending };
+                    #[cfg(target_arch = "x86_64")]
+                    if avx2 {
+                        // SAFETY: the CPU supports AVX2 (checked at run time by `has_avx2`).
+                        return unsafe { slabs.fuse_avx2(slab, buf, bricks) };
                     }
-                    (updated, near)
+                    let _ = avx2;
+                    slabs.fuse(slab, buf, bricks)
                 },
             )
-            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+            .reduce(IntegrateStats::default, |a, b| IntegrateStats {
+                updated: a.updated + b.updated,
+                near_surface: a.near_surface + b.near_surface,
+                bricks_skipped: a.bricks_skipped + b.bricks_skipped,
+                bricks_free: a.bricks_free + b.bricks_free,
+            });
         self.views += 1;
-        Ok(IntegrateStats { updated, near_surface })
+        Ok(stats)
     }
 
     /// The fused solid: voxels with a negative value, and voxels never updated (hidden in every view).
     pub fn occupancy(&self) -> Occupancy {
         Occupancy::from_index_fn(self.grid, |i, j, k| {
-            let idx = self.grid.index(i, j, k);
-            self.weight[idx] == 0.0 || self.value[idx] < 0.0
+            let (value, weight) = self.voxel(i, j, k);
+            weight == 0.0 || value < 0.0
         })
     }
 
@@ -208,11 +253,11 @@ impl Tsdf {
         }
         let mut c = [0.0f64; 8];
         for (n, cv) in c.iter_mut().enumerate() {
-            let idx = g.index(base[0] + (n & 1), base[1] + ((n >> 1) & 1), base[2] + ((n >> 2) & 1));
-            if self.weight[idx] == 0.0 {
+            let (value, weight) = self.voxel(base[0] + (n & 1), base[1] + ((n >> 1) & 1), base[2] + ((n >> 2) & 1));
+            if weight == 0.0 {
                 return None;
             }
-            *cv = f64::from(self.value[idx]);
+            *cv = f64::from(value);
         }
         let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
         let value = lerp(
@@ -258,6 +303,374 @@ impl Tsdf {
             })
             .sum();
         moved
+    }
+}
+
+/// Edge of a brick, voxels: the block the culling settles at once, and the depth of the slabs that run
+/// in parallel.
+const BRICK: usize = 8;
+/// Edge of a depth tile, pixels: the block of the per-view depth summary the culling reads.
+const TILE: usize = 8;
+/// A brick whose projection spans more tiles than this is done voxel by voxel (its summary would cost
+/// more than it saves).
+const MAX_TILES: usize = 1024;
+
+/// What one view does to a whole brick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Brick {
+    /// No voxel is updated.
+    Skip,
+    /// Every voxel gets the free-space sample (1).
+    Free,
+    /// Anything else: voxel by voxel.
+    Mixed,
+}
+
+/// True when the CPU runs AVX2 (checked at run time: builds stay generic).
+fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// One slab of `BRICK` slices of constant `z` (fewer in the last): its values, weights and pending
+/// free-space samples.
+#[derive(Debug)]
+struct Slab<'a> {
+    /// The slab's index: slices `kb * BRICK ..`.
+    kb: usize,
+    values: &'a mut [f32],
+    weights: &'a mut [f32],
+    /// Per brick of the slab, `x` fastest.
+    pending: &'a mut [u32],
+}
+
+/// One view's fusion of a slab of `BRICK` slices of constant `z`: what every slab shares.
+#[derive(Debug, Clone, Copy)]
+struct SlabFusion<'a> {
+    /// The depth camera in the grid's frame.
+    camera: &'a CameraModel,
+    grid: VoxelGrid,
+    projection: RowProjection,
+    update: Update,
+    /// Whether the camera has lens distortion (then nothing is culled).
+    distorted: bool,
+    /// The view's brick culling; `None` projects every voxel.
+    culler: Option<&'a BrickCuller>,
+    /// The depth map, metres, row-major.
+    depth_m: &'a [f32],
+}
+
+impl SlabFusion<'_> {
+    /// [`SlabFusion::fuse`] compiled for 256-bit vectors. Only AVX2 is enabled, not FMA: the compiler
+    /// never fuses a multiply and an add on its own, so both builds round every operation the same and
+    /// a volume does not depend on the CPU that fused it.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn fuse_avx2(&self, slab: Slab<'_>, buf: &mut RowBuffers, bricks: &mut Vec<Brick>) -> IntegrateStats {
+        self.fuse(slab, buf, bricks)
+    }
+
+    /// Fuse one slab. A brick given the free-space sample only counts it as pending; a brick done
+    /// voxel by voxel first folds in what it has pending.
+    #[inline(always)]
+    fn fuse(&self, slab: Slab<'_>, buf: &mut RowBuffers, bricks: &mut Vec<Brick>) -> IntegrateStats {
+        let Slab { kb, values, weights, pending } = slab;
+        let [nx, ny, nz] = self.grid.dims;
+        let (nbx, nby) = (nx.div_ceil(BRICK), ny.div_ceil(BRICK));
+        let depth = (nz - kb * BRICK).min(BRICK);
+        let mut stats = IntegrateStats::default();
+        bricks.clear();
+        for jb in 0..nby {
+            for ib in 0..nbx {
+                let brick = match self.culler {
+                    Some(culler) => culler.classify([ib, jb, kb]),
+                    None => Brick::Mixed,
+                };
+                let b = ib + nbx * jb;
+                let (i0, i1) = (ib * BRICK, ((ib + 1) * BRICK).min(nx));
+                let (j0, j1) = (jb * BRICK, ((jb + 1) * BRICK).min(ny));
+                // Fold in what is pending before a voxel-by-voxel update (or before the count
+                // would overflow).
+                let settle_now = match brick {
+                    Brick::Skip => false,
+                    Brick::Free => pending[b] == u32::MAX,
+                    Brick::Mixed => pending[b] > 0,
+                };
+                if settle_now {
+                    for dk in 0..depth {
+                        for j in j0..j1 {
+                            let at = nx * (j + ny * dk);
+                            let (v, w) = (&mut values[at + i0..at + i1], &mut weights[at + i0..at + i1]);
+                            settle_run(v, w, pending[b], self.update.max_weight);
+                        }
+                    }
+                    pending[b] = 0;
+                }
+                match brick {
+                    Brick::Skip => stats.bricks_skipped += 1,
+                    Brick::Free => {
+                        stats.bricks_free += 1;
+                        stats.updated += ((i1 - i0) * (j1 - j0) * depth) as u64;
+                        pending[b] += 1;
+                    }
+                    Brick::Mixed => {}
+                }
+                // What the rows below still have to do: free bricks are done.
+                bricks.push(if brick == Brick::Mixed { Brick::Mixed } else { Brick::Skip });
+            }
+        }
+        for (dk, (values, weights)) in
+            values.chunks_exact_mut(nx * ny).zip(weights.chunks_exact_mut(nx * ny)).enumerate()
+        {
+            let k = kb * BRICK + dk;
+            for (j, (values, weights)) in values.chunks_exact_mut(nx).zip(weights.chunks_exact_mut(nx)).enumerate() {
+                let row = &bricks[j / BRICK * nbx..][..nbx];
+                let mut i0 = 0;
+                while i0 < nx {
+                    // The run of bricks of one kind from voxel `i0`.
+                    let brick = row[i0 / BRICK];
+                    let mut i1 = (i0 / BRICK + 1) * BRICK;
+                    while i1 < nx && row[i1 / BRICK] == brick {
+                        i1 += BRICK;
+                    }
+                    let i1 = i1.min(nx);
+                    let (values, weights) = (&mut values[i0..i1], &mut weights[i0..i1]);
+                    match brick {
+                        Brick::Skip | Brick::Free => {}
+                        Brick::Mixed => {
+                            let (u, n) = self.voxels(j, k, i0..i1, values, weights, buf);
+                            stats.updated += u64::from(u);
+                            stats.near_surface += u64::from(n);
+                        }
+                    }
+                    i0 = i1;
+                }
+            }
+        }
+        stats
+    }
+
+    /// Voxels `range` of row `(j, k)`, whose values and weights are given, one by one: project, look
+    /// the depth up, update. Returns the voxels updated and those within the truncation band.
+    #[inline(always)]
+    fn voxels(
+        &self,
+        j: usize,
+        k: usize,
+        range: Range<usize>,
+        values: &mut [f32],
+        weights: &mut [f32],
+        buf: &mut RowBuffers,
+    ) -> (u32, u32) {
+        // From the row's first centre whatever part of the row is done, so that every voxel projects
+        // the same way, culled or not.
+        let start = self.camera.pose.apply(&self.grid.centre(0, j, k)).map(|c| c as f32);
+        let start = [start.x, start.y, start.z];
+        let ramp = &buf.ramp[range.clone()];
+        let (pixel, z, depth) = (&mut buf.pixel[range.clone()], &mut buf.z[range.clone()], &mut buf.depth[range]);
+        let inside = if self.distorted {
+            self.projection.project::<true>(start, ramp, pixel, z)
+        } else {
+            self.projection.project::<false>(start, ramp, pixel, z)
+        };
+        if !inside {
+            return (0, 0);
+        }
+        for (d, &p) in depth.iter_mut().zip(pixel.iter()) {
+            // -1 (outside) becomes usize::MAX: no pixel.
+            *d = self.depth_m.get(p as usize).copied().unwrap_or(f32::NAN);
+        }
+        self.update.row(values, weights, depth, z)
+    }
+}
+
+/// One view's means to settle whole bricks without projecting their voxels, for a camera without lens
+/// distortion (a box in front of a pinhole camera projects inside the rectangle of its corners'
+/// projections).
+///
+/// The depth map is summarised per tile of `TILE` x `TILE` pixels by the smallest and largest "key"
+/// of its pixels: the measured depth (metres), `+inf` for an empty pixel that carves (depth 0 with
+/// `missing_is_free`), `-inf` for a pixel that updates nothing (unknown, invalid, or empty without
+/// `missing_is_free`). A voxel at camera depth `z` on a pixel whose key is at least `z + truncation`
+/// gets the free-space sample; on a pixel whose key is below `z - truncation` it gets no update. A
+/// brick spans camera depths `[z_min, z_max]` and a rectangle of pixels (widened by the `f32`
+/// projection's rounding): it is skipped when the rectangle misses the image or every tile it touches
+/// has its largest key below `z_min - truncation`, and gets the free-space sample when the rectangle
+/// lies in the image and every tile has its smallest key at least `z_max + truncation`. Both bounds
+/// are widened by the `f32` rounding of the per-voxel path, so the outcome is the one that path
+/// gives, voxel for voxel.
+#[derive(Debug)]
+struct BrickCuller {
+    camera: CameraModel,
+    /// Voxels along x, y, z.
+    dims: [usize; 3],
+    /// Camera coordinates of voxel `(0, 0, 0)`'s centre, metres.
+    origin: [f64; 3],
+    /// Camera-frame step from one voxel to the next along the grid's x, y and z, metres.
+    axes: [[f64; 3]; 3],
+    /// Truncation distance, metres.
+    trunc_m: f64,
+    /// Bound on the error of the per-voxel path's `f32` camera coordinates (and on the rounding of
+    /// the truncation), metres, with a wide safety factor.
+    pad_m: f64,
+    /// Largest absolute camera coordinate of a voxel centre, metres.
+    scale_m: f64,
+    tiles_x: usize,
+    key_min: Vec<f32>,
+    key_max: Vec<f32>,
+}
+
+impl BrickCuller {
+    fn new(
+        camera: &CameraModel,
+        grid: &VoxelGrid,
+        depth_m: &[f32],
+        trunc_m: f64,
+        missing_is_free: bool,
+    ) -> BrickCuller {
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        let (tiles_x, tiles_y) = (w.div_ceil(TILE), h.div_ceil(TILE));
+        let mut key_min = vec![f32::INFINITY; tiles_x * tiles_y];
+        let mut key_max = vec![f32::NEG_INFINITY; tiles_x * tiles_y];
+        // Per band of tile rows: each column's extremes down the band (vectorised), then per tile.
+        key_min.par_chunks_mut(tiles_x).zip(key_max.par_chunks_mut(tiles_x)).enumerate().for_each_init(
+            || (vec![0.0f32; w], vec![0.0f32; w]),
+            |(column_min, column_max), (ty, (mins, maxs))| {
+                column_min.fill(f32::INFINITY);
+                column_max.fill(f32::NEG_INFINITY);
+                for row in depth_m.chunks_exact(w).skip(ty * TILE).take(TILE) {
+                    for ((lo, hi), &d) in column_min.iter_mut().zip(column_max.iter_mut()).zip(row) {
+                        let key = pixel_key(d, missing_is_free);
+                        *lo = if key < *lo { key } else { *lo };
+                        *hi = if key > *hi { key } else { *hi };
+                    }
+                }
+                for ((lo, hi), (column_min, column_max)) in
+                    mins.iter_mut().zip(maxs.iter_mut()).zip(column_min.chunks(TILE).zip(column_max.chunks(TILE)))
+                {
+                    *lo = column_min.iter().fold(f32::INFINITY, |a, &b| if b < a { b } else { a });
+                    *hi = column_max.iter().fold(f32::NEG_INFINITY, |a, &b| if b > a { b } else { a });
+                }
+            },
+        );
+        // Camera coordinates are affine in the voxel index: their extremes are at the grid's corners.
+        let [nx, ny, nz] = grid.dims;
+        let scale_m = (0..8)
+            .map(|n| {
+                let c = grid.centre(
+                    if n & 1 == 0 { 0 } else { nx - 1 },
+                    if n & 2 == 0 { 0 } else { ny - 1 },
+                    if n & 4 == 0 { 0 } else { nz - 1 },
+                );
+                camera.pose.apply(&c).amax()
+            })
+            .fold(0.0, f64::max);
+        let origin = camera.pose.apply(&grid.centre(0, 0, 0));
+        let axes = [0, 1, 2].map(|a| {
+            let step = camera.pose.rotation.column(a) * grid.voxel_size;
+            [step.x, step.y, step.z]
+        });
+        BrickCuller {
+            camera: *camera,
+            dims: grid.dims,
+            origin: [origin.x, origin.y, origin.z],
+            axes,
+            trunc_m,
+            pad_m: 1e-5 * (scale_m + trunc_m),
+            scale_m,
+            tiles_x,
+            key_min,
+            key_max,
+        }
+    }
+
+    /// What the view does to brick `b` (voxels `b * BRICK ..` along each axis).
+    fn classify(&self, b: [usize; 3]) -> Brick {
+        // Camera coordinates of the brick's corner voxel centres: affine in the voxel index (plain
+        // loops over fixed-size arrays, which the compiler unrolls).
+        let mut ends = [[[0.0f64; 3]; 2]; 3];
+        for (a, [first_end, last_end]) in ends.iter_mut().enumerate() {
+            let first = (b[a] * BRICK) as f64;
+            let last = (((b[a] + 1) * BRICK).min(self.dims[a]) - 1) as f64;
+            for ((f, l), &step) in first_end.iter_mut().zip(last_end.iter_mut()).zip(&self.axes[a]) {
+                *f = first * step;
+                *l = last * step;
+            }
+        }
+        let mut corners = [[0.0f64; 3]; 8];
+        let (mut z_min, mut z_max) = (f64::INFINITY, f64::NEG_INFINITY);
+        for (n, corner) in corners.iter_mut().enumerate() {
+            let (ex, ey, ez) = (&ends[0][n & 1], &ends[1][(n >> 1) & 1], &ends[2][(n >> 2) & 1]);
+            for (c, out) in corner.iter_mut().enumerate() {
+                *out = self.origin[c] + ex[c] + ey[c] + ez[c];
+            }
+            z_min = z_min.min(corner[2]);
+            z_max = z_max.max(corner[2]);
+        }
+        if z_max < -self.pad_m {
+            return Brick::Skip; // behind the camera
+        }
+        // Across the camera plane, too close for the pixel bound below, or not finite.
+        if !(z_min > 1e-3 * self.scale_m && z_max.is_finite()) {
+            return Brick::Mixed;
+        }
+        let i = &self.camera.intrinsics;
+        let (mut u_min, mut u_max, mut v_min, mut v_max) =
+            (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+        let mut slope = 0.0f64;
+        for &[x, y, z] in &corners {
+            let r = 1.0 / z;
+            let (x, y) = (x * r, y * r);
+            let (u, v) = (i.fx * x + i.skew * y + i.cx, i.fy * y + i.cy);
+            u_min = if u < u_min { u } else { u_min };
+            u_max = if u > u_max { u } else { u_max };
+            v_min = if v < v_min { v } else { v_min };
+            v_max = if v > v_max { v } else { v_max };
+            let s = x.abs() + y.abs();
+            slope = if s > slope { s } else { slope };
+        }
+        // Pixel error of the f32 projection: coordinates off by `pad_m`, divided by `z`.
+        let pad_px = 0.01 + (i.fx.abs() + i.fy.abs() + i.skew.abs()) * self.pad_m / z_min * (1.0 + slope);
+        let (u0, u1, v0, v1) = (u_min - pad_px, u_max + pad_px, v_min - pad_px, v_max + pad_px);
+        let (width, height) = (f64::from(self.camera.width), f64::from(self.camera.height));
+        if !(u0.is_finite() && u1.is_finite() && v0.is_finite() && v1.is_finite()) {
+            return Brick::Mixed;
+        }
+        if u1 < 0.0 || v1 < 0.0 || u0 >= width || v0 >= height {
+            return Brick::Skip; // outside the image
+        }
+        let in_image = u0 >= 0.0 && v0 >= 0.0 && u1 < width && v1 < height;
+        // The tiles of the pixels the brick can land on (floor of non-negative values).
+        let (tx0, tx1) = (u0.max(0.0) as usize / TILE, u1.min(width - 1.0) as usize / TILE);
+        let (ty0, ty1) = (v0.max(0.0) as usize / TILE, v1.min(height - 1.0) as usize / TILE);
+        if (tx1 - tx0 + 1) * (ty1 - ty0 + 1) > MAX_TILES {
+            return Brick::Mixed;
+        }
+        let (mut key_min, mut key_max) = (f32::INFINITY, f32::NEG_INFINITY);
+        for ty in ty0..=ty1 {
+            let at = ty * self.tiles_x;
+            for (lo, hi) in self.key_min[at + tx0..=at + tx1].iter().zip(&self.key_max[at + tx0..=at + tx1]) {
+                key_min = key_min.min(*lo);
+                key_max = key_max.max(*hi);
+            }
+        }
+        let band = self.trunc_m + self.pad_m;
+        if f64::from(key_max) < z_min - band {
+            Brick::Skip // hidden behind the surface wherever it lands
+        } else if in_image && f64::from(key_min) >= z_max + band {
+            Brick::Free
+        } else {
+            Brick::Mixed
+        }
     }
 }
 
@@ -326,6 +739,7 @@ impl RowProjection {
     /// Camera `z` and depth-map index (-1: behind the camera or outside the image) of each voxel of
     /// the row whose first centre is at `start` (camera frame); whether any voxel lands in the image.
     /// `DISTORT` applies the lens distortion ([`crate::geometry::Intrinsics::distort`]).
+    #[inline(always)]
     fn project<const DISTORT: bool>(&self, start: [f32; 3], ramp: &[f32], pixel: &mut [i32], z: &mut [f32]) -> bool {
         let mut inside = 0u32;
         for ((&t, p), zo) in ramp.iter().zip(pixel.iter_mut()).zip(z.iter_mut()) {
@@ -367,6 +781,7 @@ impl Update {
     /// Fold one row's depth samples (`NaN` = no pixel) at camera depths `z` into its values and
     /// weights, without branches (indexed loop over equal-length slices and bit-mask selects, which
     /// the compiler vectorises); returns the voxels updated and those within the truncation band.
+    #[inline(always)]
     fn row(&self, values: &mut [f32], weights: &mut [f32], depth: &[f32], z: &[f32]) -> (u32, u32) {
         let (mut updated, mut near) = (0u32, 0u32);
         let n = values.len().min(weights.len()).min(depth.len()).min(z.len());
@@ -389,6 +804,61 @@ impl Update {
             near += u32::from(hit & (sdf < self.trunc));
         }
         (updated, near)
+    }
+}
+
+/// Fold `count` free-space samples into one voxel's `value` and `weight`: what [`Update::row`] does,
+/// `count` times, to a voxel on an empty pixel or in front of the surface by at least the truncation,
+/// with the same arithmetic. A value of exactly 1 stays 1 (`(w + 1) / (w + 1)`), and weights are whole
+/// numbers or the cap, exact in `f32` below 2^24, so that common case is done in one step.
+#[inline(always)]
+fn settle(value: &mut f32, weight: &mut f32, count: u32, max_weight: f32) {
+    if count == 0 {
+        return;
+    }
+    if *value == 1.0 && f64::from(*weight) + f64::from(count) <= 16_777_216.0 {
+        *weight = (*weight + count as f32).min(max_weight);
+        return;
+    }
+    for _ in 0..count {
+        let (v, wt) = (*value, *weight);
+        *value = (v * wt + 1.0) / (wt + 1.0);
+        *weight = (wt + 1.0).min(max_weight);
+    }
+}
+
+/// [`settle`] over a run of voxels; when every value is 1 and every weight small enough (the common
+/// case, far from any surface), only the weights change, in one vectorised pass.
+#[inline(always)]
+fn settle_run(values: &mut [f32], weights: &mut [f32], count: u32, max_weight: f32) {
+    const EXACT: u32 = 1 << 24;
+    if count <= EXACT {
+        let limit = (EXACT - count) as f32;
+        let ones = values.iter().fold(true, |all, &v| all & (v == 1.0));
+        let small = weights.iter().fold(true, |all, &w| all & (w <= limit));
+        if ones && small {
+            let count = count as f32;
+            for w in weights.iter_mut() {
+                *w = (*w + count).min(max_weight);
+            }
+            return;
+        }
+    }
+    for (v, w) in values.iter_mut().zip(weights.iter_mut()) {
+        settle(v, w, count, max_weight);
+    }
+}
+
+/// A pixel's key for [`BrickCuller`]: its measured depth (metres), `+inf` for an empty pixel that
+/// carves, `-inf` for a pixel that updates nothing; without branches.
+#[inline(always)]
+fn pixel_key(d: f32, missing_is_free: bool) -> f32 {
+    let measured = (d > 0.0) & (d < f32::INFINITY);
+    let other = if missing_is_free & (d == 0.0) { f32::INFINITY } else { f32::NEG_INFINITY };
+    if measured {
+        d
+    } else {
+        other
     }
 }
 
@@ -659,6 +1129,130 @@ mod tests {
         for missing_is_free in [false, true] {
             let n = matches_reference(grid, FusionParams { missing_is_free, ..params }, &views);
             assert!(n > grid.len() * 8 / 10, "{n} of {} voxels compared", grid.len());
+        }
+    }
+
+    /// Fuses the views with the brick culling and without it, and requires the same stats and the same
+    /// field, bit for bit, after every view; returns the bricks skipped and the bricks given the
+    /// free-space sample over all views (so a caller can tell the culling acted).
+    fn culling_matches_unculled(
+        grid: VoxelGrid,
+        params: FusionParams,
+        views: &[(CameraModel, Vec<f32>)],
+    ) -> (u64, u64) {
+        let mut culled = Tsdf::new(grid, params).expect("tsdf");
+        let mut full = Tsdf::new(grid, params).expect("tsdf");
+        let (mut skipped, mut free) = (0, 0);
+        for (n, (cam, depth)) in views.iter().enumerate() {
+            let got = culled.integrate(cam, depth).expect("integrate");
+            let want = full.integrate_with(cam, depth, false).expect("integrate");
+            assert_eq!((want.bricks_skipped, want.bricks_free), (0, 0));
+            assert_eq!((got.updated, got.near_surface), (want.updated, want.near_surface), "view {n}");
+            skipped += got.bricks_skipped;
+            free += got.bricks_free;
+            for k in 0..grid.dims[2] {
+                for j in 0..grid.dims[1] {
+                    for i in 0..grid.dims[0] {
+                        let (a, b) = (culled.get(i, j, k), full.get(i, j, k));
+                        assert!(
+                            a.0.to_bits() == b.0.to_bits() && a.1.to_bits() == b.1.to_bits(),
+                            "view {n}, voxel {i} {j} {k}: culled {a:?}, every voxel {b:?}"
+                        );
+                    }
+                }
+            }
+        }
+        // The readers fold pending free-space samples in the same way.
+        let (a, b) = (culled.occupancy(), full.occupancy());
+        assert_eq!(a.count(), b.count());
+        for k in 0..grid.dims[2] {
+            for j in 0..grid.dims[1] {
+                for i in 0..grid.dims[0] {
+                    assert_eq!(a.get(i, j, k), b.get(i, j, k), "occupancy of {i} {j} {k}");
+                }
+            }
+        }
+        let mut sampled = 0;
+        for n in 0..2000 {
+            // Points spiralling over a sphere a little larger than the scenes' (where the field is known).
+            let (t, phi) = (n as f64 / 2000.0, n as f64 * 2.399_963);
+            let (z, r) = (1.0 - 2.0 * t, (1.0 - (1.0 - 2.0 * t).powi(2)).sqrt());
+            let p = [r * phi.cos(), r * phi.sin(), z].map(|c| c * (R + 0.002));
+            let got = culled.sample(&p);
+            assert_eq!(got, full.sample(&p), "sample at {p:?}");
+            sampled += usize::from(got.is_some());
+        }
+        assert!(sampled > 100, "{sampled} points sampled");
+        (skipped, free)
+    }
+
+    #[test]
+    fn culling_whole_bricks_changes_no_voxel() {
+        // Dimensions that are not multiples of the brick, so partial bricks occur on three faces.
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.04, -0.036, -0.03], max: [0.04, 0.04, 0.034] }, 44);
+        assert!(grid.dims.iter().any(|&d| d % BRICK != 0), "{:?}", grid.dims);
+        let params = FusionParams { truncation_m: 3.0 * grid.voxel_size, max_weight: 4.0, missing_is_free: true };
+
+        // The sphere on an empty background (carving) from a ring of views.
+        let ring: Vec<_> = (0..6)
+            .map(|i| {
+                let cam = camera(60.0 * i as f64 + 5.0);
+                let depth = sphere_depth(&cam);
+                (cam, depth)
+            })
+            .collect();
+        // The sphere before a wall that cuts through the grid (bricks hidden behind it), with holes
+        // (rectangles of dropouts, unknown and invalid pixels, stray single dropouts, some on the
+        // sphere's rim), a depth step across the image, and an empty view.
+        let mut views = Vec::new();
+        for (n, angle) in [0.0, 75.0, 150.0, 290.0].into_iter().enumerate() {
+            let cam = camera(angle);
+            let mut depth = sphere_depth(&cam);
+            let wall = cam.pose.apply(&Vector3::zeros()).z as f32 + 0.012 - 0.004 * n as f32;
+            for v in 0..cam.height as usize {
+                for u in 0..cam.width as usize {
+                    let d = &mut depth[v * cam.width as usize + u];
+                    if *d == 0.0 {
+                        *d = if u < 100 { wall } else { wall - 0.03 };
+                    }
+                    match (u / 10, v / 10) {
+                        (3, 2..=4) => *d = 0.0,
+                        (8, 5) | (9, 5) => *d = f32::NAN,
+                        (12, 8) => *d = -1.0,
+                        (13, 8) => *d = f32::INFINITY,
+                        _ if (u * 7 + v * 13) % 89 == 0 => *d = 0.0,
+                        _ => {}
+                    }
+                }
+            }
+            views.push((cam, depth));
+        }
+        views.push((camera(33.0), vec![0.0; 160 * 120]));
+        // A close camera with skew (no distortion): the grid spills out of the image and part of it
+        // lies behind the camera.
+        let close = CameraModel {
+            intrinsics: Intrinsics { skew: 0.7, ..Intrinsics::new(300.0, 290.0, 82.0, 57.0) },
+            pose: Pose::look_at(Vector3::new(0.01, -0.034, 0.012), Vector3::zeros(), Vector3::z()),
+            ..camera(0.0)
+        };
+        for angle in [0.0, 130.0] {
+            let cam = close.for_turntable_angle(angle);
+            let mut depth = sphere_depth(&cam);
+            for (n, d) in depth.iter_mut().enumerate() {
+                if n % 61 == 0 {
+                    *d = 0.0;
+                }
+            }
+            views.push((cam, depth));
+        }
+        views.extend(ring.iter().cloned());
+        for missing_is_free in [true, false] {
+            let params = FusionParams { missing_is_free, ..params };
+            let (skipped, free) = culling_matches_unculled(grid, params, &ring);
+            assert!(skipped > 0 && free > 0, "ring: {skipped} skipped, {free} free bricks");
+            let (skipped, free) = culling_matches_unculled(grid, params, &views);
+            // Without `missing_is_free` the stray dropouts leave few tiles that carve whole.
+            assert!(skipped > 100 && free > 0, "holes: {skipped} skipped, {free} free bricks");
         }
     }
 
