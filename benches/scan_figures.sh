@@ -27,7 +27,8 @@ measure() { # rig-file label settings
     read -r after total < <(python3 -c 'import json,sys; t=json.load(open(sys.argv[1]))["timings_s"]; print(t["after_last_frame_s"], t["total"])' "$tmp/out/report.json")
     printf '%s | %s | %d | %.3f | %.2f\n' "$2" "$3" $((kb / 1024)) "$after" "$total"
   else
-    echo "$2 | $3 | failed: $(grep -v '^\s' "$log" | tail -1)"
+    # The scan's own error (for a grid above the memory budget: the estimate), not time's exit line.
+    echo "$2 | $3 | failed: $(grep -v -e $'^\t' -e '^Command exited' "$log" | tail -1 | sed 's/^ *//')"
   fi
   rm -rf "$tmp/out"
 }
