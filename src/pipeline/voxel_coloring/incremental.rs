@@ -219,8 +219,8 @@ impl ViewState {
     }
 }
 
-/// Per-view samples of slot `s` (voxel `v`) under the item buffers with the views facing below
-/// `min_cos` dropped, with the centre pixels (for colouring).
+/// Per-view samples of slot `s` (voxel `v`) from the cached samples, with the views facing below
+/// `min_cos` dropped and the centre pixels read (for colouring).
 fn colour_samples(
     cams: &[VoxelCamera],
     pixels: &[ViewPixels<'_>],
@@ -232,15 +232,11 @@ fn colour_samples(
 ) -> Vec<ViewSample> {
     let mut samples = Vec::new();
     for ((cam, px), st) in cams.iter().zip(pixels).zip(states) {
-        let Some(fp) = st.fps[s as usize].get() else { continue };
-        if facing(cam, cam.point(v, [0.0; 3]), normal) < params.min_cos {
+        let FootprintSample { count, mean, .. } = st.samples[s as usize];
+        if count == 0 || facing(cam, cam.point(v, [0.0; 3]), normal) < params.min_cos {
             continue;
         }
-        let visible = |p: usize| st.id[p] == s;
-        let FootprintSample { count, mean, .. } = px.sample(&fp, visible);
-        if count > 0 {
-            samples.push(ViewSample { count, mean, centre: centre_sample(cam, px, v, visible) });
-        }
+        samples.push(ViewSample { count, mean, centre: centre_sample(cam, px, v, |p| st.id[p] == s) });
     }
     samples
 }
