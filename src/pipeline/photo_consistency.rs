@@ -844,11 +844,11 @@ mod tests {
         ViewSample { count, mean, centre: None }
     }
 
-    #[test]
-    fn voxel_camera_projects_like_the_camera_model_with_every_lens_term() {
-        use crate::geometry::{Aabb, Intrinsics, Pose};
+    /// A 640x480 camera with every lens term and skew, looking at the origin from 0.34 m.
+    fn lens_camera() -> CameraModel {
+        use crate::geometry::{Intrinsics, Pose};
         use nalgebra::Vector3;
-        let camera = CameraModel {
+        CameraModel {
             intrinsics: Intrinsics {
                 k1: -0.21,
                 k2: 0.09,
@@ -861,7 +861,14 @@ mod tests {
             pose: Pose::look_at(Vector3::new(0.05, -0.3, 0.15), Vector3::zeros(), Vector3::z()),
             width: 640,
             height: 480,
-        };
+        }
+    }
+
+    #[test]
+    fn voxel_camera_projects_like_the_camera_model_with_every_lens_term() {
+        use crate::geometry::{Aabb, Intrinsics};
+        use nalgebra::Vector3;
+        let camera = lens_camera();
         let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.05; 3], max: [0.05; 3] }, 16);
         let vc = VoxelCamera::new(&camera, &grid);
         let mut checked = 0;
@@ -885,19 +892,9 @@ mod tests {
 
     #[test]
     fn cube_rectangles_and_covers_match_projecting_every_corner() {
-        use crate::geometry::{Aabb, Intrinsics, Pose};
+        use crate::geometry::{Aabb, Intrinsics};
         use crate::pipeline::occupancy::Occupancy;
-        use nalgebra::Vector3;
-        let lens = Intrinsics {
-            k1: -0.21,
-            k2: 0.09,
-            p1: 0.004,
-            p2: -0.003,
-            k3: -0.02,
-            skew: 0.5,
-            ..Intrinsics::new(800.0, 790.0, 321.0, 238.0)
-        };
-        let pose = Pose::look_at(Vector3::new(0.05, -0.3, 0.15), Vector3::zeros(), Vector3::z());
+        let CameraModel { intrinsics: lens, pose, .. } = lens_camera();
         let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.05; 3], max: [0.05; 3] }, 24);
         for intrinsics in [lens, Intrinsics::new(800.0, 790.0, 321.0, 238.0)] {
             let camera = CameraModel { intrinsics, pose, width: 640, height: 480 };
