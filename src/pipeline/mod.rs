@@ -53,7 +53,7 @@ pub use shadow_carving::{
 };
 pub use shadows::{detect_shadows, ShadowError, ShadowMaps, ShadowParams};
 pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
-pub use simplify::{simplify, simplify_within, Simplification, SimplifyParams, SimplifyStats};
+pub use simplify::{simplify, simplify_in, simplify_within, Simplification, SimplifyParams, SimplifyStats};
 pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
 pub use voxel_coloring::{
     carve_photo, color_voxels, color_voxels_sweeps, colour_surface, measure_noise, ordinal_sweeps, reprojection_error,

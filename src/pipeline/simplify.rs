@@ -26,9 +26,17 @@
 //! - fold a triangle over: every triangle that moves must keep its normal within 90 degrees of its
 //!   old one and must not become degenerate.
 //!
+//! A mesh of at least 100,000 triangles is cut into slabs of equal vertex count along its longest
+//! axis (one per 50,000 triangles, at most 16), simplified slab by slab in parallel with the corners
+//! of the triangles that cross a cut held in place, and then the edges at the cuts are queued on
+//! the whole mesh and collapsed in one pass under the same checks. The result depends on the mesh,
+//! not on the number of threads.
+//!
 //! Positions are metres in the mesh's own frame (worked in `f64` relative to the centroid).
 
 use std::time::Instant;
+
+use rayon::prelude::*;
 
 use super::hausdorff::{hausdorff_distance, point_triangle_distance2, Hausdorff};
 use super::mesh::TriangleMesh;
@@ -195,20 +203,94 @@ impl NewFace {
     }
 }
 
+/// The input surface, never changed: what every collapse is checked against.
+struct Original {
+    /// Vertex positions, metres relative to the centroid.
+    pos: Vec<[f64; 3]>,
+    tris: Vec<[u32; 3]>,
+    /// Triangles around each vertex: `around[start[v]..start[v + 1]]`.
+    start: Vec<u32>,
+    around: Vec<u32>,
+}
+
+impl Original {
+    fn new(pos: Vec<[f64; 3]>, tris: Vec<[u32; 3]>) -> Original {
+        let mut start = vec![0u32; pos.len() + 1];
+        for t in &tris {
+            for &v in t {
+                start[v as usize + 1] += 1;
+            }
+        }
+        for v in 0..pos.len() {
+            start[v + 1] += start[v];
+        }
+        let mut around = vec![0u32; start[pos.len()] as usize];
+        let mut fill = start.clone();
+        for (ti, t) in tris.iter().enumerate() {
+            for &v in t {
+                around[fill[v as usize] as usize] = ti as u32;
+                fill[v as usize] += 1;
+            }
+        }
+        Original { pos, tris, start, around }
+    }
+
+    fn triangles_of(&self, v: u32) -> &[u32] {
+        &self.around[self.start[v as usize] as usize..self.start[v as usize + 1] as usize]
+    }
+
+    /// Each triangle's plane quadric summed per vertex (unweighted, unit normals).
+    fn quadrics(&self) -> Vec<Quadric> {
+        let mut quadric = vec![Quadric::default(); self.pos.len()];
+        for t in &self.tris {
+            if let Some((normal, d)) = plane_of(&self.pos, t) {
+                let q = Quadric::plane(normal, d);
+                for &v in t {
+                    quadric[v as usize].add(&q);
+                }
+            }
+        }
+        quadric
+    }
+}
+
+/// The state of a simplification, to start or resume one: current positions, triangles, quadrics,
+/// which vertices live, and the triangle each original vertex is tracked on (`NONE` for a vertex on
+/// no triangle).
+struct State {
+    pos: Vec<[f64; 3]>,
+    tris: Vec<[u32; 3]>,
+    alive_tri: Vec<bool>,
+    quadric: Vec<Quadric>,
+    alive: Vec<bool>,
+    home: Vec<u32>,
+}
+
+impl State {
+    /// Nothing collapsed yet: every original vertex on its first triangle (distance 0).
+    fn start(original: &Original, quadric: Vec<Quadric>) -> State {
+        let home =
+            (0..original.pos.len() as u32).map(|v| original.triangles_of(v).first().copied().unwrap_or(NONE)).collect();
+        State {
+            pos: original.pos.clone(),
+            tris: original.tris.clone(),
+            alive_tri: vec![true; original.tris.len()],
+            quadric,
+            alive: vec![true; original.pos.len()],
+            home,
+        }
+    }
+}
+
 /// The mesh being simplified.
-struct Work {
+struct Work<'o> {
+    original: &'o Original,
     /// Current vertex positions, relative to the centroid.
     pos: Vec<[f64; 3]>,
-    /// Original vertex positions, relative to the centroid (never moved).
-    orig: Vec<[f64; 3]>,
     tris: Vec<[u32; 3]>,
     alive_tri: Vec<bool>,
     /// Current triangles around each vertex.
     around: Vec<Vec<u32>>,
-    /// Original triangles around each original vertex: `orig_tris[orig_start[v]..orig_start[v + 1]]`.
-    orig_start: Vec<u32>,
-    orig_around: Vec<u32>,
-    orig_tris: Vec<[u32; 3]>,
     /// The original vertices each current triangle holds, as singly linked lists: the first per
     /// triangle, the next per original vertex.
     first_point: Vec<u32>,
@@ -216,6 +298,8 @@ struct Work {
     quadric: Vec<Quadric>,
     version: Vec<u32>,
     alive: Vec<bool>,
+    /// Vertices that may not move or go (on a region's seam while regions are simplified apart).
+    locked: Vec<bool>,
     bound2: f64,
     // Scratch buffers, reused across collapses.
     shared: Vec<u32>,
@@ -227,99 +311,125 @@ struct Work {
 
 /// Why a collapse was not made.
 enum Refusal {
-    /// Stale, not manifold, over the quadric bound or folding: nothing was measured.
+    /// Stale, locked, not manifold, over the quadric bound or folding: nothing was measured.
     Shape,
     /// A vertex would leave the distance bound.
     Distance,
 }
 
-impl Work {
-    fn new(mesh: &TriangleMesh, bound2: f64) -> (Work, [f64; 3]) {
-        let n = mesh.vertices.len();
-        let centre = {
-            let mut c = [0f64; 3];
-            for v in &mesh.vertices {
-                for a in 0..3 {
-                    c[a] += f64::from(v[a]);
-                }
-            }
-            c.map(|x| x / n.max(1) as f64)
-        };
-        let pos: Vec<[f64; 3]> = mesh.vertices.iter().map(|v| [0, 1, 2].map(|a| f64::from(v[a]) - centre[a])).collect();
-        let tris = mesh.triangles.clone();
-        let mut quadric = vec![Quadric::default(); n];
+impl<'o> Work<'o> {
+    fn new(original: &'o Original, state: State, locked: Vec<bool>, bound2: f64) -> Work<'o> {
+        let State { pos, tris, alive_tri, quadric, alive, home } = state;
+        let n = pos.len();
         let mut count = vec![0u32; n];
-        for t in &tris {
-            if let Some((normal, d)) = plane_of(&pos, t) {
-                let q = Quadric::plane(normal, d);
-                for &v in t {
-                    quadric[v as usize].add(&q);
-                }
-            }
+        for (t, _) in tris.iter().zip(&alive_tri).filter(|(_, &a)| a) {
             for &v in t {
                 count[v as usize] += 1;
             }
         }
         let mut around: Vec<Vec<u32>> = count.iter().map(|&c| Vec::with_capacity(c as usize)).collect();
-        let mut orig_start = Vec::with_capacity(n + 1);
-        orig_start.push(0u32);
-        let mut total = 0u32;
-        for &c in &count {
-            total += c;
-            orig_start.push(total);
-        }
-        let mut orig_around = vec![0u32; total as usize];
-        let mut fill = orig_start.clone();
-        for (ti, t) in tris.iter().enumerate() {
+        for (ti, (t, _)) in tris.iter().zip(&alive_tri).enumerate().filter(|(_, (_, &a))| a) {
             for &v in t {
                 around[v as usize].push(ti as u32);
-                orig_around[fill[v as usize] as usize] = ti as u32;
-                fill[v as usize] += 1;
             }
         }
-        // Each original vertex starts on its first triangle (distance 0).
         let mut first_point = vec![NONE; tris.len()];
         let mut next_point = vec![NONE; n];
-        for v in 0..n {
-            if let Some(&t) = around[v].first() {
+        for (v, &t) in home.iter().enumerate() {
+            if t != NONE {
                 next_point[v] = first_point[t as usize];
                 first_point[t as usize] = v as u32;
             }
         }
-        let work = Work {
-            orig: pos.clone(),
+        Work {
+            original,
             pos,
-            alive_tri: vec![true; tris.len()],
-            orig_tris: tris.clone(),
             tris,
+            alive_tri,
             around,
-            orig_start,
-            orig_around,
             first_point,
             next_point,
             quadric,
             version: vec![0; n],
-            alive: vec![true; n],
+            alive,
+            locked,
             bound2,
             shared: Vec::new(),
             faces: Vec::new(),
             points: Vec::new(),
             ring_a: Vec::new(),
             ring_b: Vec::new(),
-        };
-        (work, centre)
+        }
+    }
+
+    /// The state reached, to resume from (the triangle each original vertex is on read back from
+    /// the lists).
+    fn into_state(self) -> State {
+        let mut home = vec![NONE; self.next_point.len()];
+        for (t, &first) in self.first_point.iter().enumerate() {
+            let mut x = first;
+            while x != NONE {
+                home[x as usize] = t as u32;
+                x = self.next_point[x as usize];
+            }
+        }
+        State {
+            pos: self.pos,
+            tris: self.tris,
+            alive_tri: self.alive_tri,
+            quadric: self.quadric,
+            alive: self.alive,
+            home,
+        }
     }
 
     fn push(&self, queue: &mut CollapseQueue, a: u32, b: u32) {
+        if self.locked[a as usize] || self.locked[b as usize] {
+            return;
+        }
         let (cost, _) = best_position(&self.pos, &self.quadric, a, b);
         if cost <= self.bound2 {
             queue.push(cost, (a, b, self.version[a as usize], self.version[b as usize]));
         }
     }
 
+    /// Collapse the queued edges, cheapest first, until none is left; every collapse that passes the
+    /// checks is made and each edge around its vertex queued again.
+    fn run(&mut self, queue: &mut CollapseQueue, stats: &mut SimplifyStats) {
+        let mut vertices_left = self.around.iter().filter(|r| !r.is_empty()).count();
+        let mut ring = Vec::new();
+        while let Some((a, b, va, vb)) = queue.pop() {
+            let (ai, bi) = (a as usize, b as usize);
+            if !self.alive[ai] || !self.alive[bi] || self.version[ai] != va || self.version[bi] != vb {
+                continue;
+            }
+            if vertices_left <= 4 {
+                break;
+            }
+            match self.try_collapse(a, b) {
+                Ok(()) => {}
+                Err(Refusal::Shape) => continue,
+                Err(Refusal::Distance) => {
+                    stats.refused_by_distance += 1;
+                    continue;
+                }
+            }
+            vertices_left -= 1;
+            stats.collapses += 1;
+            neighbours(&self.tris, &self.around[bi], b, &mut ring);
+            for &v in &ring {
+                let (x, y) = if v < b { (v, b) } else { (b, v) };
+                self.push(queue, x, y);
+            }
+        }
+    }
+
     /// Collapse `a` into `b` when every check passes (module docs).
     fn try_collapse(&mut self, a: u32, b: u32) -> Result<(), Refusal> {
         let (ai, bi) = (a as usize, b as usize);
+        if self.locked[ai] || self.locked[bi] {
+            return Err(Refusal::Shape);
+        }
         // Link condition: the triangles on the edge are exactly two, and the ends share exactly their
         // two opposite vertices.
         self.shared.clear();
@@ -361,7 +471,7 @@ impl Work {
             let own = self.faces.iter().position(|f| f.id == t);
             let mut x = self.first_point[t as usize];
             while x != NONE {
-                let q = self.orig[x as usize];
+                let q = self.original.pos[x as usize];
                 let home = own
                     .filter(|&k| self.faces[k].holds(q, self.bound2))
                     .or_else(|| self.faces.iter().position(|f| f.holds(q, self.bound2)));
@@ -425,13 +535,12 @@ impl Work {
             let d = sub(p, q);
             dot(d, d) <= self.bound2
         };
-        if self.points.iter().any(|&(x, _)| close(self.orig[x as usize])) {
+        if self.points.iter().any(|&(x, _)| close(self.original.pos[x as usize])) {
             return true;
         }
         self.points.iter().any(|&(x, _)| {
-            let (s, e) = (self.orig_start[x as usize] as usize, self.orig_start[x as usize + 1] as usize);
-            self.orig_around[s..e].iter().any(|&t| {
-                let tri = self.orig_tris[t as usize].map(|i| self.orig[i as usize]);
+            self.original.triangles_of(x).iter().any(|&t| {
+                let tri = self.original.tris[t as usize].map(|i| self.original.pos[i as usize]);
                 point_triangle_distance2(p, &tri) <= self.bound2
             })
         })
@@ -442,6 +551,23 @@ impl Work {
 /// vertices. An edge shared by other than two triangles is never collapsed, so an open or
 /// non-manifold input stays valid but is simplified less.
 pub fn simplify(mesh: &TriangleMesh, params: &SimplifyParams) -> (TriangleMesh, SimplifyStats) {
+    let regions = (mesh.triangles.len() / REGION_TRIANGLES).clamp(1, MAX_REGIONS);
+    simplify_in(mesh, params, regions)
+}
+
+/// Triangles per region when [`simplify`] splits a mesh (fewer: one region, nothing split).
+const REGION_TRIANGLES: usize = 50_000;
+
+/// Most regions [`simplify`] splits a mesh into.
+const MAX_REGIONS: usize = 16;
+
+/// [`simplify`] with the mesh cut into `regions` slabs of equal vertex count along its longest axis
+/// (1: not cut, every collapse made one after the other). Each slab's triangles are simplified apart,
+/// in parallel, with the vertices of the triangles that cross a cut locked; the collapses around the
+/// cuts are then queued again on the whole mesh and made in one pass. Every collapse passes the same
+/// checks either way, so the bound holds the same; the result depends on the number of regions, not
+/// on the number of threads.
+pub fn simplify_in(mesh: &TriangleMesh, params: &SimplifyParams, regions: usize) -> (TriangleMesh, SimplifyStats) {
     let mut stats = SimplifyStats { triangles_before: mesh.triangles.len(), ..SimplifyStats::default() };
     let n = mesh.vertices.len();
     let valid = mesh.triangles.iter().all(|t| t.iter().all(|&i| (i as usize) < n));
@@ -450,42 +576,51 @@ pub fn simplify(mesh: &TriangleMesh, params: &SimplifyParams) -> (TriangleMesh, 
         stats.triangles_after = mesh.triangles.len();
         return (mesh.clone(), stats);
     }
-    let (mut work, centre) = Work::new(mesh, bound2);
+    let centre = {
+        let mut c = [0f64; 3];
+        for v in &mesh.vertices {
+            for a in 0..3 {
+                c[a] += f64::from(v[a]);
+            }
+        }
+        c.map(|x| x / n as f64)
+    };
+    let pos: Vec<[f64; 3]> = mesh.vertices.iter().map(|v| [0, 1, 2].map(|a| f64::from(v[a]) - centre[a])).collect();
+    let original = Original::new(pos, mesh.triangles.clone());
+    let quadric = original.quadrics();
+    let mut state = State::start(&original, quadric);
+    let mut locked = vec![false; n];
+    if regions > 1 {
+        let split = Split::new(&original, regions);
+        let done: Vec<(State, SimplifyStats)> = (0..regions)
+            .into_par_iter()
+            .map(|r| {
+                let (sub, sub_state, sub_locked) = split.region(&original, &state, r);
+                let mut work = Work::new(&sub, sub_state, sub_locked, bound2);
+                let mut sub_stats = SimplifyStats::default();
+                work.run(&mut queue_all(&work, params.max_error_m), &mut sub_stats);
+                (work.into_state(), sub_stats)
+            })
+            .collect();
+        for (r, (sub_state, sub_stats)) in done.into_iter().enumerate() {
+            split.absorb(r, sub_state, &mut state);
+            stats.collapses += sub_stats.collapses;
+            stats.refused_by_distance += sub_stats.refused_by_distance;
+        }
+        locked = split.locked;
+    }
+    // The whole mesh, nothing locked: everything when it was not split, else the edges at the cuts.
+    let mut work = Work::new(&original, state, vec![false; n], bound2);
     let mut queue = CollapseQueue::new(params.max_error_m);
-    for t in &work.tris {
+    for (t, _) in work.tris.iter().zip(&work.alive_tri).filter(|(_, &a)| a) {
         for e in 0..3 {
             let (a, b) = (t[e], t[(e + 1) % 3]);
-            if a < b {
+            if a < b && (regions == 1 || locked[a as usize] || locked[b as usize]) {
                 work.push(&mut queue, a, b);
             }
         }
     }
-    let mut vertices_left = work.around.iter().filter(|r| !r.is_empty()).count();
-    let mut ring = Vec::new();
-    while let Some((a, b, va, vb)) = queue.pop() {
-        let (ai, bi) = (a as usize, b as usize);
-        if !work.alive[ai] || !work.alive[bi] || work.version[ai] != va || work.version[bi] != vb {
-            continue;
-        }
-        if vertices_left <= 4 {
-            break;
-        }
-        match work.try_collapse(a, b) {
-            Ok(()) => {}
-            Err(Refusal::Shape) => continue,
-            Err(Refusal::Distance) => {
-                stats.refused_by_distance += 1;
-                continue;
-            }
-        }
-        vertices_left -= 1;
-        stats.collapses += 1;
-        neighbours(&work.tris, &work.around[bi], b, &mut ring);
-        for &v in &ring {
-            let (x, y) = if v < b { (v, b) } else { (b, v) };
-            work.push(&mut queue, x, y);
-        }
-    }
+    work.run(&mut queue, &mut stats);
     // Compact.
     let mut remap = vec![NONE; n];
     let mut out = TriangleMesh::default();
@@ -505,6 +640,99 @@ pub fn simplify(mesh: &TriangleMesh, params: &SimplifyParams) -> (TriangleMesh, 
     out.colors = colors;
     stats.triangles_after = out.triangles.len();
     (out, stats)
+}
+
+/// Every edge of the live triangles queued (those with a locked end are not).
+fn queue_all(work: &Work<'_>, max_error_m: f64) -> CollapseQueue {
+    let mut queue = CollapseQueue::new(max_error_m);
+    for (t, _) in work.tris.iter().zip(&work.alive_tri).filter(|(_, &a)| a) {
+        for e in 0..3 {
+            let (a, b) = (t[e], t[(e + 1) % 3]);
+            if a < b {
+                work.push(&mut queue, a, b);
+            }
+        }
+    }
+    queue
+}
+
+/// A mesh cut into slabs for [`simplify_in`]: each vertex in one slab, each triangle in the slab of
+/// its three corners or on a cut.
+struct Split {
+    /// The vertices (original indices) each region simplifies, and the triangles.
+    vertices: Vec<Vec<u32>>,
+    triangles: Vec<Vec<u32>>,
+    /// Index of each vertex in its region's list (`NONE`: on no triangle of its region).
+    local: Vec<u32>,
+    /// Vertices of a triangle that crosses a cut.
+    locked: Vec<bool>,
+}
+
+impl Split {
+    fn new(original: &Original, regions: usize) -> Split {
+        let n = original.pos.len();
+        let (lo, hi) = original.pos.iter().fold(([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]), |(lo, hi), p| {
+            ([0, 1, 2].map(|k| lo[k].min(p[k])), [0, 1, 2].map(|k| hi[k].max(p[k])))
+        });
+        let axis = (0..3).max_by(|&a, &b| (hi[a] - lo[a]).total_cmp(&(hi[b] - lo[b]))).unwrap_or(0);
+        let mut order: Vec<f64> = original.pos.iter().map(|p| p[axis]).collect();
+        order.sort_unstable_by(f64::total_cmp);
+        let cuts: Vec<f64> = (1..regions).map(|r| order[r * n / regions]).collect();
+        let region_of: Vec<u32> = original.pos.iter().map(|p| cuts.partition_point(|&c| c <= p[axis]) as u32).collect();
+        let mut triangles = vec![Vec::new(); regions];
+        let mut locked = vec![false; n];
+        for (ti, t) in original.tris.iter().enumerate() {
+            let r = region_of[t[0] as usize];
+            if t.iter().all(|&v| region_of[v as usize] == r) {
+                triangles[r as usize].push(ti as u32);
+            } else {
+                for &v in t {
+                    locked[v as usize] = true;
+                }
+            }
+        }
+        let mut vertices = vec![Vec::new(); regions];
+        let mut local = vec![NONE; n];
+        for (r, tris) in triangles.iter().enumerate() {
+            for &t in tris {
+                for v in original.tris[t as usize] {
+                    if local[v as usize] == NONE {
+                        local[v as usize] = vertices[r].len() as u32;
+                        vertices[r].push(v);
+                    }
+                }
+            }
+        }
+        Split { vertices, triangles, local, locked }
+    }
+
+    /// Region `r` as a mesh of its own (its triangles, renumbered), its state and locked vertices.
+    fn region(&self, original: &Original, state: &State, r: usize) -> (Original, State, Vec<bool>) {
+        let (vertices, triangles) = (&self.vertices[r], &self.triangles[r]);
+        let tris: Vec<[u32; 3]> =
+            triangles.iter().map(|&t| original.tris[t as usize].map(|v| self.local[v as usize])).collect();
+        let sub = Original::new(vertices.iter().map(|&v| original.pos[v as usize]).collect(), tris);
+        let quadric = vertices.iter().map(|&v| state.quadric[v as usize]).collect();
+        let sub_state = State::start(&sub, quadric);
+        let locked = vertices.iter().map(|&v| self.locked[v as usize]).collect();
+        (sub, sub_state, locked)
+    }
+
+    /// Region `r`'s result written back into the whole mesh's state.
+    fn absorb(&self, r: usize, sub: State, state: &mut State) {
+        let (vertices, triangles) = (&self.vertices[r], &self.triangles[r]);
+        for (l, &v) in vertices.iter().enumerate() {
+            let v = v as usize;
+            state.pos[v] = sub.pos[l];
+            state.quadric[v] = sub.quadric[l];
+            state.alive[v] = sub.alive[l];
+            state.home[v] = triangles[sub.home[l] as usize];
+        }
+        for (l, &t) in triangles.iter().enumerate() {
+            state.tris[t as usize] = sub.tris[l].map(|v| vertices[v as usize]);
+            state.alive_tri[t as usize] = sub.alive_tri[l];
+        }
+    }
 }
 
 /// The result of [`simplify_within`].
@@ -653,6 +881,9 @@ mod tests {
             assert_eq!(topo.open_or_misoriented_edges, 0, "{name}");
             assert_eq!((topo.components, topo.euler_characteristic), (1, euler), "{name}");
             assert!(simple.signed_volume() > 0.0);
+            let (split, _) = simplify_in(&mesh, &SimplifyParams { max_error_m: bound }, 3);
+            let topo = split.topology();
+            assert_eq!((topo.components, topo.open_or_misoriented_edges, topo.euler_characteristic), (1, 0, euler));
         }
         assert!(simplify_within(&mesh_of(&Occupancy::full(grid)), 0.0, 100).is_none());
     }
@@ -671,16 +902,57 @@ mod tests {
             *v = v.map(|x| (f64::from(x) * (1.0 + noise / r)) as f32);
         }
         let bound = 0.25 * grid.voxel_size;
-        let (simple, stats) = simplify(&mesh, &SimplifyParams { max_error_m: bound });
-        assert!(stats.triangles_after * 3 < stats.triangles_before * 2, "{stats:?}");
         let slack = 1e-6;
-        let to_simple = TriangleIndex::new(&simple).expect("triangles");
-        let worst = mesh.vertices.iter().map(|v| to_simple.distance(v.map(f64::from))).fold(0.0, f64::max);
-        assert!(worst <= bound + slack, "original vertex {worst} from the simplified surface, bound {bound}");
         let to_mesh = TriangleIndex::new(&mesh).expect("triangles");
-        let worst = simple.vertices.iter().map(|v| to_mesh.distance(v.map(f64::from))).fold(0.0, f64::max);
-        assert!(worst <= bound + slack, "simplified vertex {worst} from the original surface, bound {bound}");
-        assert_eq!(simple.topology().open_or_misoriented_edges, 0);
+        // Whole, and cut into regions simplified apart (the seams then on the whole mesh).
+        let mut counts = Vec::new();
+        for regions in [1, 2, 5] {
+            let (simple, stats) = simplify_in(&mesh, &SimplifyParams { max_error_m: bound }, regions);
+            assert!(stats.triangles_after * 3 < stats.triangles_before * 2, "{regions}: {stats:?}");
+            let to_simple = TriangleIndex::new(&simple).expect("triangles");
+            let worst = mesh.vertices.iter().map(|v| to_simple.distance(v.map(f64::from))).fold(0.0, f64::max);
+            assert!(
+                worst <= bound + slack,
+                "{regions}: original vertex {worst} from the simplified surface, bound {bound}"
+            );
+            let worst = simple.vertices.iter().map(|v| to_mesh.distance(v.map(f64::from))).fold(0.0, f64::max);
+            assert!(
+                worst <= bound + slack,
+                "{regions}: simplified vertex {worst} from the original surface, bound {bound}"
+            );
+            let topo = simple.topology();
+            assert_eq!((topo.components, topo.open_or_misoriented_edges, topo.euler_characteristic), (1, 0, 2));
+            counts.push(stats.triangles_after);
+        }
+        // The seams are simplified as well as the rest: within 5 % of the whole mesh's count.
+        assert!(counts.iter().all(|&c| c * 20 <= counts[0] * 21), "{counts:?}");
+    }
+
+    /// The cut keeps every triangle in one region or on a cut, and locks exactly the corners of the
+    /// ones on a cut.
+    #[test]
+    fn a_split_covers_every_triangle_once() {
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-1.0; 3], max: [1.0; 3] }, 24);
+        let mesh = mesh_of(&Occupancy::from_fn(grid, |p| p.norm() < 0.7));
+        let pos = mesh.vertices.iter().map(|v| v.map(f64::from)).collect();
+        let original = Original::new(pos, mesh.triangles.clone());
+        let split = Split::new(&original, 3);
+        let mut seen = vec![0u32; mesh.triangles.len()];
+        for (r, tris) in split.triangles.iter().enumerate() {
+            assert!(tris.len() * 5 > mesh.triangles.len(), "region {r} holds {} triangles", tris.len());
+            for &t in tris {
+                seen[t as usize] += 1;
+                assert!(mesh.triangles[t as usize]
+                    .iter()
+                    .all(|&v| split.vertices[r][split.local[v as usize] as usize] == v));
+            }
+        }
+        for (t, &n) in seen.iter().enumerate() {
+            let corners_locked = mesh.triangles[t].iter().all(|&v| split.locked[v as usize]);
+            assert!(n == 1 || (n == 0 && corners_locked), "triangle {t} in {n} regions");
+        }
+        let on_cut = seen.iter().filter(|&&n| n == 0).count();
+        assert!(on_cut > 0 && on_cut * 10 < mesh.triangles.len(), "{on_cut} triangles on the cuts");
     }
 
     #[test]
