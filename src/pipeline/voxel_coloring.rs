@@ -597,11 +597,27 @@ fn colouring_verdict(
     v: [u32; 3],
     params: &PhotoParams,
 ) -> Option<bool> {
+    colouring_verdict_in(dense, cams, pixels, claimed, v, params, 0..cams.len())
+}
+
+/// [`colouring_verdict`] consulting only `views` (increasing indices): the same verdict whenever
+/// every view left out has none of `v`'s footprint pixels both unclaimed and inside its silhouette
+/// (such a view contributes no sample and no contour-band pixel).
+fn colouring_verdict_in(
+    dense: &Dense,
+    cams: &[VoxelCamera],
+    pixels: &[ViewPixels<'_>],
+    claimed: &[Vec<bool>],
+    v: [u32; 3],
+    params: &PhotoParams,
+    views: impl Iterator<Item = usize>,
+) -> Option<bool> {
     let mut samples = Vec::new();
     let mut patterns = Vec::new();
     let mut rim = false;
     let normal = normal_estimate(&|i, j, k| dense.get(i, j, k), v);
-    for ((cam, px), marks) in cams.iter().zip(pixels).zip(claimed) {
+    for n in views {
+        let (cam, px, marks) = (&cams[n], &pixels[n], &claimed[n]);
         let Some(fp) = cam.footprint(v) else { continue };
         let visible = |p: usize| !marks[p];
         let FootprintSample { count, mean, rim: on_rim } = px.sample(&fp, visible);
@@ -709,22 +725,26 @@ pub fn color_voxels_sweeps(
         let d = ordinal_direction(&grid, views).err();
         return Err(d.unwrap_or(PhotoError::NoOrdinalOrder { view: 0, direction: [0.0; 3] }));
     }
+    // Each view's pixels are classified once, for every sweep it is in and the colouring.
+    let pixels = ViewPixels::all(views);
     let mut occupancy = start.clone();
     let mut stats = PhotoStats::default();
     for sweep in &sweeps {
         let used: Vec<PhotoView<'_>> = sweep.views.iter().map(|&n| views[n]).collect();
-        let m = layered::color_along(&occupancy, &used, params, sweep.direction)?;
-        tracing::debug!(direction = ?sweep.direction, views = used.len(), carved = m.stats.carved, "voxel colouring sweep");
-        stats.iterations += m.stats.iterations;
-        stats.visits += m.stats.visits;
-        stats.carved += m.stats.carved;
+        let used_pixels: Vec<ViewPixels<'_>> = sweep.views.iter().map(|&n| pixels[n].clone()).collect();
+        let (dense, s) = layered::color_along(&occupancy, &used, &used_pixels, params, sweep.direction);
+        tracing::debug!(direction = ?sweep.direction, views = used.len(), carved = s.carved, "voxel colouring sweep");
+        stats.iterations += s.iterations;
+        stats.visits += s.visits;
+        stats.carved += s.carved;
         stats.sweeps += 1;
-        occupancy = m.occupancy;
+        occupancy = dense.to_occupancy(grid);
     }
     let mut dense = Dense::from(&occupancy);
     stats.carved -= restore_silhouettes(start, &mut dense, views);
     let occupancy = dense.to_occupancy(grid);
-    let surface = colour_surface(&occupancy, views, params)?;
+    let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let surface = colour_dense(&dense, &cams, &pixels, params);
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats })
 }
@@ -1147,6 +1167,43 @@ mod tests {
         let ring_views: Vec<PhotoView<'_>> =
             ring.iter().map(|c| PhotoView { camera: *c, image: &img, mask: None }).collect();
         assert!(matches!(color_voxels(&hull, &ring_views, &params), Err(PhotoError::NoOrdinalOrder { .. })));
+    }
+
+    #[test]
+    fn voxel_colouring_through_a_distorting_lens_with_silhouettes_matches_every_voxel() {
+        use crate::pipeline::silhouette::Mask;
+        let (truth, hull) = scene();
+        let cams: Vec<CameraModel> = (0..5)
+            .map(|n| {
+                let mut c = camera(-40.0 + n as f64 * 20.0, 55.0);
+                (c.intrinsics.k1, c.intrinsics.k2, c.intrinsics.p1) = (-0.05, 0.02, 0.002);
+                c
+            })
+            .collect();
+        let images = render(&truth, &cams);
+        let boundary = truth.boundary_voxels();
+        let masks: Vec<Mask> = cams
+            .iter()
+            .map(|c| {
+                let cover = VoxelCamera::new(c, &grid()).cover(&boundary);
+                Mask::from_fn(c.width, c.height, |x, y| cover[(y * c.width + x) as usize])
+            })
+            .collect();
+        let views: Vec<PhotoView<'_>> = cams
+            .iter()
+            .zip(&images)
+            .zip(&masks)
+            .map(|((c, i), m)| PhotoView { camera: *c, image: i, mask: Some(m) })
+            .collect();
+        let params = PhotoParams { threshold: 10.0, min_cos: 0.0, ..PhotoParams::default() };
+        let model = color_voxels(&hull, &views, &params).expect("ordinal order holds");
+        let every = color_voxels_every_voxel(&hull, &views, &params).expect("ordinal order holds");
+        assert!(every.stats.carved > 0);
+        assert_eq!(model.occupancy.first_difference(&every.occupancy), None);
+        assert_eq!(model.surface, every.surface);
+        assert_eq!(model.stats.carved, every.stats.carved);
+        // Bricks are dropped (or views closed) through the lens too: fewer voxels are visited.
+        assert!(model.stats.visits < hull.count(), "{} visits of {}", model.stats.visits, hull.count());
     }
 
     #[test]

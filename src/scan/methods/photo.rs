@@ -8,9 +8,8 @@
 //! is coloured the same way as the result, so the two can be compared (ground truth on simulated
 //! rigs, photometric re-projection always).
 
-use std::collections::HashMap;
-
 use nalgebra::Vector3;
+use rayon::prelude::*;
 
 use crate::config::{Method, PhotoConfig};
 use crate::geometry::VoxelGrid;
@@ -62,60 +61,81 @@ pub struct PhotoOutputs {
     pub report: PhotoReport,
 }
 
+/// Marks a voxel of [`PhotoOutputs::colour_grid`] that no seen surface voxel colours.
+const NO_COLOUR: u32 = u32::MAX;
+
 impl PhotoOutputs {
-    fn lookup(&self) -> HashMap<[u32; 3], [u8; 3]> {
-        self.surface
-            .voxels
-            .iter()
-            .zip(&self.surface.colours)
-            .zip(&self.surface.seen)
-            .filter(|(_, &seen)| seen)
-            .map(|((v, c), _)| (*v, *c))
-            .collect()
+    /// Per voxel of the grid (linear index), the colour of the seen surface voxel there packed as
+    /// `0xRRGGBB`, else [`NO_COLOUR`]: a flat table, so looking a voxel up costs one load.
+    fn colour_grid(&self) -> Vec<u32> {
+        let mut out = vec![NO_COLOUR; self.grid.len()];
+        for ((v, c), &seen) in self.surface.voxels.iter().zip(&self.surface.colours).zip(&self.surface.seen) {
+            if seen {
+                out[self.grid.index(v[0] as usize, v[1] as usize, v[2] as usize)] =
+                    u32::from_be_bytes([0, c[0], c[1], c[2]]);
+            }
+        }
+        out
     }
 
     /// Colours of the occupied voxels of `occupancy` in `for_each_occupied` order: surface voxels
     /// take their colour, interior and unseen voxels [`UNSEEN_COLOUR`].
     pub fn voxel_colours(&self, occupancy: &Occupancy) -> Vec<[u8; 3]> {
-        let map = self.lookup();
+        let table = self.colour_grid();
+        let d = self.grid.dims;
         let mut out = Vec::new();
         occupancy.for_each_occupied(|i, j, k| {
-            out.push(map.get(&[i as u32, j as u32, k as u32]).copied().unwrap_or(UNSEEN_COLOUR))
+            let c = if i < d[0] && j < d[1] && k < d[2] { table[self.grid.index(i, j, k)] } else { NO_COLOUR };
+            out.push(unpack(c))
         });
         out
     }
 
     /// Vertex colours of a mesh of the result: each vertex takes the colour of the nearest seen
-    /// surface voxel within two voxels ([`UNSEEN_COLOUR`] when there is none).
+    /// surface voxel within two voxels ([`UNSEEN_COLOUR`] when there is none); ties go to the
+    /// first in z, y, x order of the offsets.
     pub fn mesh_colours(&self, mesh: &TriangleMesh) -> Vec<[u8; 3]> {
-        let map = self.lookup();
+        let table = self.colour_grid();
         let g = &self.grid;
+        let dims = g.dims.map(|d| d as i64);
         let s = g.voxel_size as f32;
         mesh.vertices
-            .iter()
+            .par_iter()
             .map(|p| {
                 let f = [0, 1, 2].map(|a| (p[a] - g.origin[a] as f32) / s - 0.5);
                 let base = f.map(|x| x.round() as i64);
-                let mut best: Option<(f32, [u8; 3])> = None;
+                let mut best: Option<(f32, u32)> = None;
                 for dz in -2..=2i64 {
                     for dy in -2..=2i64 {
                         for dx in -2..=2i64 {
                             let c = [base[0] + dx, base[1] + dy, base[2] + dz];
-                            if c.iter().any(|&x| x < 0 || x > u32::MAX as i64) {
+                            if (0..3).any(|a| c[a] < 0 || c[a] >= dims[a]) {
                                 continue;
                             }
-                            let Some(col) = map.get(&c.map(|x| x as u32)) else { continue };
+                            let col = table[g.index(c[0] as usize, c[1] as usize, c[2] as usize)];
+                            if col == NO_COLOUR {
+                                continue;
+                            }
                             let d2: f32 = (0..3).map(|a| (c[a] as f32 - f[a]).powi(2)).sum();
                             if best.is_none_or(|(b, _)| d2 < b) {
-                                best = Some((d2, *col));
+                                best = Some((d2, col));
                             }
                         }
                     }
                 }
-                best.map_or(UNSEEN_COLOUR, |b| b.1)
+                best.map_or(UNSEEN_COLOUR, |b| unpack(b.1))
             })
             .collect()
     }
+}
+
+/// The colour of a [`PhotoOutputs::colour_grid`] entry ([`UNSEEN_COLOUR`] for [`NO_COLOUR`]).
+fn unpack(c: u32) -> [u8; 3] {
+    if c == NO_COLOUR {
+        return UNSEEN_COLOUR;
+    }
+    let [_, r, g, b] = c.to_be_bytes();
+    [r, g, b]
 }
 
 /// Mean absolute colour error per channel (0..255) of the seen surface voxels next to the true
