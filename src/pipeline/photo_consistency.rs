@@ -574,6 +574,11 @@ impl ItemBuffer {
         self.id.get(p).copied().unwrap_or(Self::NONE)
     }
 
+    /// Per pixel (row-major), the voxel nearest there or [`Self::NONE`].
+    pub(crate) fn ids(&self) -> &[u32] {
+        &self.id
+    }
+
     pub(crate) fn render(cam: &VoxelCamera, voxels: &[[u32; 3]]) -> ItemBuffer {
         let n = cam.width * cam.height;
         let mut buf = ItemBuffer { width: cam.width, depth: vec![f32::INFINITY; n], id: vec![Self::NONE; n] };

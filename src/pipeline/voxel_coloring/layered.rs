@@ -17,7 +17,8 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::{
-    claim, colour_dense, colouring_verdict_in, ordinal_direction, restore_silhouettes, Dense, PhotoModel, PhotoStats,
+    claim, colour_dense_with_error, colouring_verdict_in, ordinal_direction, restore_silhouettes, Dense, PhotoModel,
+    PhotoStats,
 };
 use crate::pipeline::occupancy::Occupancy;
 use crate::pipeline::photo_consistency::{check_inputs, PhotoError, PhotoParams, PhotoView, ViewPixels, VoxelCamera};
@@ -56,9 +57,9 @@ pub(super) fn color(
     let (dense, mut stats) = color_along(start, views, &pixels, params, d);
     let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
     let occupancy = dense.to_occupancy(grid);
-    let surface = colour_dense(&dense, &cams, &pixels, params);
+    let (surface, reprojection_error) = colour_dense_with_error(&dense, &cams, &pixels, views, params);
     stats.seconds = t.elapsed().as_secs_f64();
-    Ok(PhotoModel { occupancy, surface, stats })
+    Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
 }
 
 /// Voxel colouring from `start` in layers of increasing `d·x` (`d` a unit vector, grid frame, for

@@ -15,7 +15,7 @@ use crate::config::{Method, PhotoConfig};
 use crate::geometry::VoxelGrid;
 use crate::pipeline::photo_consistency::UNSEEN_COLOUR;
 use crate::pipeline::{
-    carve_photo, color_voxels_sweeps, colour_surface, measure_noise, ordinal_sweeps, reprojection_error,
+    carve_photo, color_voxels_sweeps, colour_surface, measure_noise_and_colour, ordinal_sweeps, reprojection_error,
     ColouredSurface, Occupancy, PhotoError, PhotoParams, PhotoView, TriangleMesh,
 };
 use crate::scan::report::{PhotoReport, VisualHull};
@@ -178,20 +178,36 @@ pub fn reconstruct_photo(
     let grid = *hull.grid();
     let used = views;
     // The threshold: fixed by the configuration, else derived from the measured noise of these
-    // views over the hull's surface.
-    let (params, noise) = match config.threshold {
-        Some(_) => (photo_params(config), None),
+    // views over the hull's surface. Measuring it colours the hull's surface on the way (the
+    // colouring only depends on `min_cos`, not on the threshold).
+    let (params, noise, hull_coloured) = match config.threshold {
+        Some(_) => (photo_params(config), None, None),
         None => {
             let p = photo_params(config);
-            let noise = measure_noise(hull, used, &p)?;
+            let (noise, surface, error) = measure_noise_and_colour(hull, used, &p)?;
             tracing::info!(threshold = noise.threshold(), image_sigma = noise.image_sigma, "photo threshold measured");
-            (p.with_measured_noise(&noise), Some(noise))
+            (p.with_measured_noise(&noise), Some(noise), Some((surface, error)))
         }
     };
-    let model = if method == Method::VoxelColoring {
-        color_voxels_sweeps(hull, used, &params)?
-    } else {
-        carve_photo(hull, used, &params)?
+    let carve = || {
+        if method == Method::VoxelColoring {
+            color_voxels_sweeps(hull, used, &params)
+        } else {
+            carve_photo(hull, used, &params)
+        }
+    };
+    // Without a measurement, the hull is coloured alongside the carving (they are independent).
+    let (model, (hull_surface, hull_reprojection)) = match hull_coloured {
+        Some(h) => (carve()?, h),
+        None => {
+            let colour_hull = || -> Result<(ColouredSurface, f64), PhotoError> {
+                let surface = colour_surface(hull, used, &params)?;
+                let error = reprojection_error(&grid, &surface, used);
+                Ok((surface, error))
+            };
+            let (model, h) = rayon::join(carve, colour_hull);
+            (model?, h?)
+        }
     };
     tracing::info!(
         method = method.name(),
@@ -201,7 +217,6 @@ pub fn reconstruct_photo(
         seconds = model.stats.seconds,
         "photo-consistency done"
     );
-    let hull_surface = colour_surface(hull, used, &params)?;
     let hull_overlap = truth.and_then(|t| hull.iou_and_containment(t.occupancy).ok());
     let visual_hull = VisualHull {
         voxels: hull.count(),
@@ -209,7 +224,7 @@ pub fn reconstruct_photo(
         iou: hull_overlap.map(|o| o.iou),
         containment: hull_overlap.map(|o| o.containment),
         colour_error: truth.and_then(|t| colour_error(&hull_surface, &grid, t)),
-        reprojection_error: Some(reprojection_error(&grid, &hull_surface, used)),
+        reprojection_error: Some(hull_reprojection),
     };
     let report = PhotoReport {
         threshold: f64::from(params.threshold),
@@ -228,7 +243,7 @@ pub fn reconstruct_photo(
         seconds: model.stats.seconds,
         surface_voxels: model.surface.voxels.len(),
         seen_surface_voxels: model.surface.seen.iter().filter(|&&s| s).count(),
-        reprojection_error: reprojection_error(&grid, &model.surface, used),
+        reprojection_error: model.reprojection_error,
     };
     let colour_error = truth.and_then(|t| colour_error(&model.surface, &grid, t));
     Ok((model.occupancy, PhotoOutputs { grid, surface: model.surface, colour_error, visual_hull, report }))
