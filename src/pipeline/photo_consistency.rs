@@ -722,14 +722,25 @@ impl<'a> ViewPixels<'a> {
         self.class[y * self.width + x] & INSIDE != 0
     }
 
-    /// Whether every pixel of the rectangle `[x0, x1, y0, y1]` (`[x0, x1) x [y0, y1)`, inside the
-    /// image) is outside the silhouette or set in `marks` (row-major, one flag a pixel): no
-    /// footprint sample can take a pixel of it that `marks` hides.
-    pub(crate) fn settled(&self, marks: &[bool], [x0, x1, y0, y1]: [usize; 4]) -> bool {
-        (y0..y1).all(|y| {
+    /// The first pixel, in row-major order from number `from` on (numbered row by row within the
+    /// rectangle `[x0, x1, y0, y1]`, i.e. `[x0, x1) x [y0, y1)` inside the image), that is inside
+    /// the silhouette and not set in `marks` (row-major, one flag a pixel); `None` when there is
+    /// none: no footprint sample can then take a pixel of the rest of the rectangle that `marks`
+    /// hides. Marks only being added, a caller can resume from the number returned last time.
+    pub(crate) fn first_unsettled(&self, marks: &[bool], [x0, x1, y0, y1]: [usize; 4], from: usize) -> Option<usize> {
+        let w = x1 - x0;
+        if w == 0 {
+            return None;
+        }
+        for y in y0 + from / w..y1 {
+            let skip = if y == y0 + from / w { from % w } else { 0 };
             let row = y * self.width;
-            marks[row + x0..row + x1].iter().zip(&self.class[row + x0..row + x1]).all(|(&m, &c)| m || c == 0)
-        })
+            let (a, b) = (row + x0 + skip, row + x1);
+            if let Some(k) = marks[a..b].iter().zip(&self.class[a..b]).position(|(&m, &c)| !m && c != 0) {
+                return Some((y - y0) * w + skip + k);
+            }
+        }
+        None
     }
 
     /// The colour of pixel `(x, y)`.
@@ -1095,6 +1106,43 @@ mod tests {
             // The cases reach both sides of the contour band when there is a mask.
             assert_eq!(rims > 0, masked);
         }
+    }
+
+    #[test]
+    fn the_first_unsettled_pixel_is_found_and_resumed_from() {
+        use crate::geometry::{Intrinsics, Pose};
+        use nalgebra::Vector3;
+        let (w, h) = (40u32, 30u32);
+        let mask = Mask::from_fn(w, h, |x, y| (x + 2 * y) % 7 != 0 && x > 3);
+        let image = RgbImage::new(w, h);
+        let camera = CameraModel {
+            intrinsics: Intrinsics::new(40.0, 40.0, 20.0, 15.0),
+            pose: Pose::look_at(Vector3::new(0.0, -1.0, 0.0), Vector3::zeros(), Vector3::z()),
+            width: w,
+            height: h,
+        };
+        let px = ViewPixels::new(&PhotoView { camera, image: &image, mask: Some(&mask) });
+        let mut marks = vec![false; (w * h) as usize];
+        let rect = [2, 12, 5, 11];
+        let brute = |marks: &[bool], from: usize| {
+            (from..60).find(|&k| {
+                let (x, y) = (2 + k % 10, 5 + k / 10);
+                !marks[y * 40 + x] && mask.get(x as u32, y as u32)
+            })
+        };
+        let mut from = 0;
+        for step in 0..200usize {
+            let got = px.first_unsettled(&marks, rect, from);
+            assert_eq!(got, brute(&marks, 0), "step {step}");
+            let Some(k) = got else { break };
+            from = k;
+            // Claim a few pixels, the first unsettled one among them.
+            for p in [(2 + k % 10) + (5 + k / 10) * 40, (step * 37) % 1200] {
+                marks[p] = true;
+            }
+        }
+        assert_eq!(px.first_unsettled(&marks, rect, from), None);
+        assert_eq!(px.first_unsettled(&marks, [3, 3, 0, 30], 0), None, "an empty rectangle is settled");
     }
 
     #[test]

@@ -39,8 +39,9 @@ struct Brick {
     rects: Vec<Option<[usize; 4]>>,
     /// The views (increasing) that may still see one of its voxels: every view at first, then
     /// the ones whose rectangle is not yet all claimed or outside the silhouette (or that have no
-    /// rectangle).
-    open: Vec<u32>,
+    /// rectangle); with each, the number (row-major within the rectangle) of the first pixel
+    /// found unsettled there, where the next check resumes.
+    open: Vec<(u32, usize)>,
 }
 
 /// See [`super::color_voxels`].
@@ -101,7 +102,7 @@ pub(super) fn color_along(
             }
             (first <= last).then(|| {
                 let rects: Vec<Option<[usize; 4]>> = cams.iter().map(|c| c.box_pixels(lo, hi)).collect();
-                Brick { lo, hi, first, last, rects, open: (0..cams.len() as u32).collect() }
+                Brick { lo, hi, first, last, rects, open: (0..cams.len() as u32).map(|n| (n, 0)).collect() }
             })
         })
         .collect();
@@ -126,9 +127,17 @@ pub(super) fn color_along(
         active.retain(|&b| {
             let brick = &mut bricks[b];
             let rects = &brick.rects;
-            brick
-                .open
-                .retain(|&n| rects[n as usize].is_none_or(|r| !pixels[n as usize].settled(&claimed[n as usize], r)));
+            brick.open.retain_mut(|(n, from)| {
+                let n = *n as usize;
+                let Some(r) = rects[n] else { return true };
+                match pixels[n].first_unsettled(&claimed[n], r, *from) {
+                    Some(k) => {
+                        *from = k;
+                        true
+                    }
+                    None => false,
+                }
+            });
             !brick.open.is_empty()
         });
         layer_voxels.clear();
@@ -152,7 +161,7 @@ pub(super) fn color_along(
         let verdicts: Vec<Option<bool>> = layer_voxels
             .par_iter()
             .map(|&(v, b)| {
-                let open = bricks[b].open.iter().map(|&n| n as usize);
+                let open = bricks[b].open.iter().map(|&(n, _)| n as usize);
                 colouring_verdict_in(&dense, &cams, pixels, &claimed, v, params, open)
             })
             .collect();
