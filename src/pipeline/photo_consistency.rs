@@ -357,26 +357,39 @@ impl VoxelCamera {
 
     /// The pixels `[x0, x1) x [y0, y1)` that hold every footprint of a voxel inside the box of voxels
     /// `lo..hi` (voxel indices, `hi` exclusive), clipped to the image (possibly empty); `None` when
-    /// that cannot be bounded this way: a corner is behind the camera, or the lens distorts (a
-    /// distorted box edge may bulge past its corners' bounding rectangle).
+    /// a corner of the box is behind the camera.
+    ///
+    /// The pinhole image of the box (normalised coordinates `x/z`, `y/z`) is the convex hull of its
+    /// corners' images, so it lies in their bounding rectangle. Without lens terms that rectangle
+    /// maps to pixels directly. With them, the lens polynomial is bounded over the rectangle by
+    /// interval arithmetic (every term is monotone in `r²` or a product of intervals), which holds
+    /// every distorted point of the box however the lens bends the box's edges; over a brick a few
+    /// pixels wide the bound is within a fraction of a pixel of the corners' rectangle.
     pub(crate) fn box_pixels(&self, lo: [u32; 3], hi: [u32; 3]) -> Option<[usize; 4]> {
-        if [self.k1, self.k2, self.k3, self.p1, self.p2].iter().any(|&k| k != 0.0) {
-            return None;
-        }
+        let (mut xa, mut xb, mut ya, mut yb) = (f32::INFINITY, f32::NEG_INFINITY, f32::INFINITY, f32::NEG_INFINITY);
         let (mut u0, mut u1, mut v0, mut v1) = (f32::INFINITY, f32::NEG_INFINITY, f32::INFINITY, f32::NEG_INFINITY);
         for corner in 0..8 {
             let p = [0, 1, 2].map(|a| {
                 let i = if corner >> a & 1 == 1 { hi[a] } else { lo[a] };
                 self.origin[a] + i as f32 * self.size
             });
+            let c = [0, 1, 2].map(|a| self.r[a][0] * p[0] + self.r[a][1] * p[1] + self.r[a][2] * p[2] + self.t[a]);
             let (z, u, w) = self.project(p);
             if z.is_nan() || z <= 0.0 || !u.is_finite() || !w.is_finite() {
                 return None;
             }
+            let (x, y) = (c[0] / c[2], c[1] / c[2]);
+            xa = xa.min(x);
+            xb = xb.max(x);
+            ya = ya.min(y);
+            yb = yb.max(y);
             u0 = u0.min(u);
             u1 = u1.max(u);
             v0 = v0.min(w);
             v1 = v1.max(w);
+        }
+        if self.distorted {
+            [u0, u1, v0, v1] = self.distorted_bound([xa, xb], [ya, yb])?;
         }
         // A footprint is the pixels whose centres lie in its voxel's rectangle, or the pixel its
         // centre falls in: all within one pixel of the box's rectangle.
@@ -388,6 +401,44 @@ impl VoxelCamera {
         let (x0, x1) = clip(u0, u1, self.width);
         let (y0, y1) = clip(v0, v1, self.height);
         Some([x0, x1, y0, y1])
+    }
+
+    /// Bounds `[u0, u1, v0, v1]` (continuous pixels) of the distorted images of the normalised
+    /// points `[xa, xb] x [ya, yb]`, by interval arithmetic in `f64`; `None` when not finite.
+    fn distorted_bound(&self, [xa, xb]: [f32; 2], [ya, yb]: [f32; 2]) -> Option<[f32; 4]> {
+        type I = [f64; 2];
+        let mul = |a: I, b: I| {
+            let p = [a[0] * b[0], a[0] * b[1], a[1] * b[0], a[1] * b[1]];
+            [p.iter().copied().fold(f64::INFINITY, f64::min), p.iter().copied().fold(f64::NEG_INFINITY, f64::max)]
+        };
+        let add = |a: I, b: I| [a[0] + b[0], a[1] + b[1]];
+        let scale = |a: I, k: f32| mul(a, [f64::from(k); 2]);
+        let square = |a: I| {
+            let (l, h) = (a[0] * a[0], a[1] * a[1]);
+            if a[0] <= 0.0 && a[1] >= 0.0 {
+                [0.0, l.max(h)]
+            } else {
+                [l.min(h), l.max(h)]
+            }
+        };
+        let x = [f64::from(xa), f64::from(xb)];
+        let y = [f64::from(ya), f64::from(yb)];
+        let (x2, y2) = (square(x), square(y));
+        let r2 = add(x2, y2);
+        // k r2^n is monotone in r2 >= 0: its interval is spanned by the ends'.
+        let term = |k: f32, n: i32| {
+            let (a, b) = (f64::from(k) * r2[0].powi(n), f64::from(k) * r2[1].powi(n));
+            [a.min(b), a.max(b)]
+        };
+        let f = add(add(add([1.0; 2], term(self.k1, 1)), term(self.k2, 2)), term(self.k3, 3));
+        let xy = mul(x, y);
+        // As `project`: xd = x f + 2 p1 x y + p2 (r2 + 2 x^2), yd = y f + p1 (r2 + 2 y^2) + 2 p2 x y.
+        let xd = add(add(mul(x, f), scale(xy, 2.0 * self.p1)), scale(add(r2, scale(x2, 2.0)), self.p2));
+        let yd = add(add(mul(y, f), scale(add(r2, scale(y2, 2.0)), self.p1)), scale(xy, 2.0 * self.p2));
+        let u = add(add(scale(xd, self.fx), scale(yd, self.skew)), [f64::from(self.cx); 2]);
+        let v = add(scale(yd, self.fy), [f64::from(self.cy); 2]);
+        let out = [u[0], u[1], v[0], v[1]];
+        out.iter().all(|b| b.is_finite()).then(|| out.map(|b| b as f32))
     }
 
     /// The footprint of voxel `v` (see the module docs); `None` when a corner is behind the camera or
@@ -523,6 +574,11 @@ impl ItemBuffer {
         self.id.get(p).copied().unwrap_or(Self::NONE)
     }
 
+    /// Per pixel (row-major), the voxel nearest there or [`Self::NONE`].
+    pub(crate) fn ids(&self) -> &[u32] {
+        &self.id
+    }
+
     pub(crate) fn render(cam: &VoxelCamera, voxels: &[[u32; 3]]) -> ItemBuffer {
         let n = cam.width * cam.height;
         let mut buf = ItemBuffer { width: cam.width, depth: vec![f32::INFINITY; n], id: vec![Self::NONE; n] };
@@ -621,6 +677,7 @@ pub(crate) struct FootprintSample {
 /// rims, so a voxel that a view sees on its silhouette's outline lies on the surface (up to the
 /// silhouettes' accuracy), and carving it would shrink that view's silhouette of the result below
 /// the hull's.
+#[derive(Clone)]
 pub(crate) struct ViewPixels<'a> {
     image: &'a [u8],
     width: usize,
@@ -663,6 +720,27 @@ impl<'a> ViewPixels<'a> {
     #[inline]
     pub(crate) fn inside(&self, x: usize, y: usize) -> bool {
         self.class[y * self.width + x] & INSIDE != 0
+    }
+
+    /// The first pixel, in row-major order from number `from` on (numbered row by row within the
+    /// rectangle `[x0, x1, y0, y1]`, i.e. `[x0, x1) x [y0, y1)` inside the image), that is inside
+    /// the silhouette and not set in `marks` (row-major, one flag a pixel); `None` when there is
+    /// none: no footprint sample can then take a pixel of the rest of the rectangle that `marks`
+    /// hides. Marks only being added, a caller can resume from the number returned last time.
+    pub(crate) fn first_unsettled(&self, marks: &[bool], [x0, x1, y0, y1]: [usize; 4], from: usize) -> Option<usize> {
+        let w = x1 - x0;
+        if w == 0 {
+            return None;
+        }
+        for y in y0 + from / w..y1 {
+            let skip = if y == y0 + from / w { from % w } else { 0 };
+            let row = y * self.width;
+            let (a, b) = (row + x0 + skip, row + x1);
+            if let Some(k) = marks[a..b].iter().zip(&self.class[a..b]).position(|(&m, &c)| !m && c != 0) {
+                return Some((y - y0) * w + skip + k);
+            }
+        }
+        None
     }
 
     /// The colour of pixel `(x, y)`.
@@ -866,7 +944,7 @@ mod tests {
 
     #[test]
     fn voxel_camera_projects_like_the_camera_model_with_every_lens_term() {
-        use crate::geometry::{Aabb, Intrinsics};
+        use crate::geometry::Aabb;
         use nalgebra::Vector3;
         let camera = lens_camera();
         let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.05; 3], max: [0.05; 3] }, 16);
@@ -882,12 +960,52 @@ mod tests {
             checked += 1;
         }
         assert_eq!(checked, 5);
-        // A tangential term alone still makes the box bound unsafe.
-        let tangential = CameraModel {
-            intrinsics: Intrinsics { p1: 0.01, ..Intrinsics::new(800.0, 800.0, 320.0, 240.0) },
-            ..camera
-        };
-        assert!(VoxelCamera::new(&tangential, &grid).box_pixels([0; 3], [16; 3]).is_none());
+    }
+
+    #[test]
+    fn box_rectangles_hold_every_footprint_of_their_voxels_through_a_distorting_lens() {
+        use crate::geometry::{Aabb, Intrinsics};
+        let CameraModel { intrinsics: lens, pose, .. } = lens_camera();
+        // The grid reaches the image corners, where the lens bends most.
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.12; 3], max: [0.12; 3] }, 48);
+        let strong = Intrinsics { k1: 0.3, k2: -0.2, p1: -0.02, p2: 0.015, ..lens };
+        let tangential = Intrinsics { p1: 0.01, ..Intrinsics::new(800.0, 800.0, 320.0, 240.0) };
+        let mut boxes = 0;
+        for intrinsics in [lens, strong, tangential, Intrinsics::new(800.0, 790.0, 321.0, 238.0)] {
+            let vc = VoxelCamera::new(&CameraModel { intrinsics, pose, width: 640, height: 480 }, &grid);
+            for lo in [[0, 0, 0], [44, 44, 44], [0, 44, 20], [44, 0, 8], [22, 22, 22], [5, 30, 40]] {
+                let hi = lo.map(|x| x + 4);
+                let [x0, x1, y0, y1] = vc.box_pixels(lo, hi).expect("every corner in front");
+                let mut union = [usize::MAX, 0, usize::MAX, 0];
+                for k in lo[2]..hi[2] {
+                    for j in lo[1]..hi[1] {
+                        for i in lo[0]..hi[0] {
+                            let Some(fp) = vc.footprint([i, j, k]) else { continue };
+                            assert!(
+                                fp.x0 >= x0 && fp.x1 <= x1 && fp.y0 >= y0 && fp.y1 <= y1,
+                                "{fp:?} outside {:?} for {intrinsics:?}",
+                                [x0, x1, y0, y1]
+                            );
+                            union =
+                                [union[0].min(fp.x0), union[1].max(fp.x1), union[2].min(fp.y0), union[3].max(fp.y1)];
+                        }
+                    }
+                }
+                // Tight: within a few pixels (and a fraction of its size, for a strong lens near the
+                // image's edge) of the footprints' own bounding rectangle.
+                if union[0] >= union[1] {
+                    continue; // off the image
+                }
+                let slack = (union[0] - x0) + (x1 - union[1]) + (union[2] - y0) + (y1 - union[3]);
+                assert!(
+                    slack <= 8 + (union[1] - union[0] + union[3] - union[2]) / 4,
+                    "{:?} around {union:?} for {intrinsics:?}",
+                    [x0, x1, y0, y1]
+                );
+                boxes += 1;
+            }
+        }
+        assert!(boxes >= 12, "{boxes} boxes seen");
     }
 
     #[test]
@@ -988,6 +1106,43 @@ mod tests {
             // The cases reach both sides of the contour band when there is a mask.
             assert_eq!(rims > 0, masked);
         }
+    }
+
+    #[test]
+    fn the_first_unsettled_pixel_is_found_and_resumed_from() {
+        use crate::geometry::{Intrinsics, Pose};
+        use nalgebra::Vector3;
+        let (w, h) = (40u32, 30u32);
+        let mask = Mask::from_fn(w, h, |x, y| (x + 2 * y) % 7 != 0 && x > 3);
+        let image = RgbImage::new(w, h);
+        let camera = CameraModel {
+            intrinsics: Intrinsics::new(40.0, 40.0, 20.0, 15.0),
+            pose: Pose::look_at(Vector3::new(0.0, -1.0, 0.0), Vector3::zeros(), Vector3::z()),
+            width: w,
+            height: h,
+        };
+        let px = ViewPixels::new(&PhotoView { camera, image: &image, mask: Some(&mask) });
+        let mut marks = vec![false; (w * h) as usize];
+        let rect = [2, 12, 5, 11];
+        let brute = |marks: &[bool], from: usize| {
+            (from..60).find(|&k| {
+                let (x, y) = (2 + k % 10, 5 + k / 10);
+                !marks[y * 40 + x] && mask.get(x as u32, y as u32)
+            })
+        };
+        let mut from = 0;
+        for step in 0..200usize {
+            let got = px.first_unsettled(&marks, rect, from);
+            assert_eq!(got, brute(&marks, 0), "step {step}");
+            let Some(k) = got else { break };
+            from = k;
+            // Claim a few pixels, the first unsettled one among them.
+            for p in [(2 + k % 10) + (5 + k / 10) * 40, (step * 37) % 1200] {
+                marks[p] = true;
+            }
+        }
+        assert_eq!(px.first_unsettled(&marks, rect, from), None);
+        assert_eq!(px.first_unsettled(&marks, [3, 3, 0, 30], 0), None, "an empty rectangle is settled");
     }
 
     #[test]

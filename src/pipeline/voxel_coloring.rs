@@ -96,6 +96,9 @@ pub struct PhotoModel {
     pub surface: ColouredSurface,
     /// Counters.
     pub stats: PhotoStats,
+    /// Photometric re-projection error of `surface` in the views it was made from (see
+    /// [`reprojection_error`]), mean absolute difference per channel, 8-bit levels.
+    pub reprojection_error: f64,
 }
 
 /// Bit of [`Dense::bits`]: the voxel is occupied.
@@ -256,9 +259,9 @@ pub fn carve_photo_surface(
     }
     stats.carved -= restore_silhouettes(start, &mut dense, views);
     let occupancy = dense.to_occupancy(grid);
-    let surface = colour_dense(&dense, &cams, &pixels, params);
+    let (surface, reprojection_error) = colour_dense_with_error(&dense, &cams, &pixels, views, params);
     stats.seconds = t.elapsed().as_secs_f64();
-    Ok(PhotoModel { occupancy, surface, stats })
+    Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
 }
 
 /// Generalized space carving from `start` on the surface only, incrementally (see the module docs):
@@ -330,9 +333,9 @@ pub fn carve_photo_sweeps(
         }
     }
     let occupancy = dense.to_occupancy(grid);
-    let surface = colour_dense(&dense, &cams, &pixels, params);
+    let (surface, reprojection_error) = colour_dense_with_error(&dense, &cams, &pixels, views, params);
     stats.seconds = t.elapsed().as_secs_f64();
-    Ok(PhotoModel { occupancy, surface, stats })
+    Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
 }
 
 /// One plane sweep of [`carve_photo_sweeps`]: along grid axis `axis` (0 = x), towards increasing index when
@@ -597,11 +600,27 @@ fn colouring_verdict(
     v: [u32; 3],
     params: &PhotoParams,
 ) -> Option<bool> {
+    colouring_verdict_in(dense, cams, pixels, claimed, v, params, 0..cams.len())
+}
+
+/// [`colouring_verdict`] consulting only `views` (increasing indices): the same verdict whenever
+/// every view left out has none of `v`'s footprint pixels both unclaimed and inside its silhouette
+/// (such a view contributes no sample and no contour-band pixel).
+fn colouring_verdict_in(
+    dense: &Dense,
+    cams: &[VoxelCamera],
+    pixels: &[ViewPixels<'_>],
+    claimed: &[Vec<bool>],
+    v: [u32; 3],
+    params: &PhotoParams,
+    views: impl Iterator<Item = usize>,
+) -> Option<bool> {
     let mut samples = Vec::new();
     let mut patterns = Vec::new();
     let mut rim = false;
     let normal = normal_estimate(&|i, j, k| dense.get(i, j, k), v);
-    for ((cam, px), marks) in cams.iter().zip(pixels).zip(claimed) {
+    for n in views {
+        let (cam, px, marks) = (&cams[n], &pixels[n], &claimed[n]);
         let Some(fp) = cam.footprint(v) else { continue };
         let visible = |p: usize| !marks[p];
         let FootprintSample { count, mean, rim: on_rim } = px.sample(&fp, visible);
@@ -709,24 +728,28 @@ pub fn color_voxels_sweeps(
         let d = ordinal_direction(&grid, views).err();
         return Err(d.unwrap_or(PhotoError::NoOrdinalOrder { view: 0, direction: [0.0; 3] }));
     }
+    // Each view's pixels are classified once, for every sweep it is in and the colouring.
+    let pixels = ViewPixels::all(views);
     let mut occupancy = start.clone();
     let mut stats = PhotoStats::default();
     for sweep in &sweeps {
         let used: Vec<PhotoView<'_>> = sweep.views.iter().map(|&n| views[n]).collect();
-        let m = layered::color_along(&occupancy, &used, params, sweep.direction)?;
-        tracing::debug!(direction = ?sweep.direction, views = used.len(), carved = m.stats.carved, "voxel colouring sweep");
-        stats.iterations += m.stats.iterations;
-        stats.visits += m.stats.visits;
-        stats.carved += m.stats.carved;
+        let used_pixels: Vec<ViewPixels<'_>> = sweep.views.iter().map(|&n| pixels[n].clone()).collect();
+        let (dense, s) = layered::color_along(&occupancy, &used, &used_pixels, params, sweep.direction);
+        tracing::debug!(direction = ?sweep.direction, views = used.len(), carved = s.carved, "voxel colouring sweep");
+        stats.iterations += s.iterations;
+        stats.visits += s.visits;
+        stats.carved += s.carved;
         stats.sweeps += 1;
-        occupancy = m.occupancy;
+        occupancy = dense.to_occupancy(grid);
     }
     let mut dense = Dense::from(&occupancy);
     stats.carved -= restore_silhouettes(start, &mut dense, views);
     let occupancy = dense.to_occupancy(grid);
-    let surface = colour_surface(&occupancy, views, params)?;
+    let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let (surface, reprojection_error) = colour_dense_with_error(&dense, &cams, &pixels, views, params);
     stats.seconds = t.elapsed().as_secs_f64();
-    Ok(PhotoModel { occupancy, surface, stats })
+    Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
 }
 
 /// The measured noise of `views` for photo-consistency from `start` (the visual hull): the image
@@ -739,6 +762,17 @@ pub fn measure_noise(
     views: &[PhotoView<'_>],
     params: &PhotoParams,
 ) -> Result<PhotoNoise, PhotoError> {
+    measure_noise_and_colour(start, views, params).map(|m| m.0)
+}
+
+/// [`measure_noise`], with the start's surface coloured as [`colour_surface`] colours it and that
+/// surface's [`reprojection_error`] in `views`: the noise is measured through the same item buffers
+/// and per-view samples, so the colours and the error come at little extra cost.
+pub fn measure_noise_and_colour(
+    start: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+) -> Result<(PhotoNoise, ColouredSurface, f64), PhotoError> {
     check_inputs(start.grid(), views, params)?;
     let median = |x: &mut Vec<f32>| {
         if x.is_empty() {
@@ -749,12 +783,12 @@ pub fn measure_noise(
     };
     let mut sigmas: Vec<f32> = views.iter().filter_map(image_noise_sigma).collect();
     let image_sigma = median(&mut sigmas);
-    let mut spreads = incremental::surface_spreads(start, views, params);
+    let (mut spreads, surface, error) = incremental::surface_spreads(start, views, params);
     let voxels = spreads.len();
     let spread_median = median(&mut spreads);
     let mut dev: Vec<f32> = spreads.iter().map(|s| (s - spread_median).abs()).collect();
     let spread_mad = median(&mut dev);
-    Ok(PhotoNoise { image_sigma, spread_median, spread_mad, voxels })
+    Ok((PhotoNoise { image_sigma, spread_median, spread_mad, voxels }, surface, error))
 }
 
 /// Voxel colouring with the ordinal visibility constraint from `start`, visiting every voxel of the
@@ -806,9 +840,9 @@ pub fn color_voxels_every_voxel(
     }
     stats.carved -= restore_silhouettes(start, &mut dense, views);
     let occupancy = dense.to_occupancy(grid);
-    let surface = colour_dense(&dense, &cams, &pixels, params);
+    let (surface, reprojection_error) = colour_dense_with_error(&dense, &cams, &pixels, views, params);
     stats.seconds = t.elapsed().as_secs_f64();
-    Ok(PhotoModel { occupancy, surface, stats })
+    Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
 }
 
 /// Give back carved voxels of `start` where the result's silhouette lost pixels: in each view with
@@ -878,6 +912,17 @@ fn colour_dense(
     pixels: &[ViewPixels<'_>],
     params: &PhotoParams,
 ) -> ColouredSurface {
+    colour_dense_buffers(dense, cams, pixels, params).0
+}
+
+/// [`colour_dense`] with the item buffers of the surface it coloured through (by index into
+/// `voxels`).
+fn colour_dense_buffers(
+    dense: &Dense,
+    cams: &[VoxelCamera],
+    pixels: &[ViewPixels<'_>],
+    params: &PhotoParams,
+) -> (ColouredSurface, Vec<ItemBuffer>) {
     let voxels = dense.surface();
     let buffers = render_item_buffers(cams, &voxels);
     let occ = |i, j, k| dense.get(i, j, k);
@@ -890,11 +935,27 @@ fn colour_dense(
             (surface_colour(&samples), !samples.is_empty())
         })
         .collect();
-    ColouredSurface {
+    let surface = ColouredSurface {
         voxels,
         colours: colours.iter().map(|c| c.0).collect(),
         seen: colours.iter().map(|c| c.1).collect(),
-    }
+    };
+    (surface, buffers)
+}
+
+/// The coloured surface of `dense` and its re-projection error in `views`, from one set of item
+/// buffers.
+fn colour_dense_with_error(
+    dense: &Dense,
+    cams: &[VoxelCamera],
+    pixels: &[ViewPixels<'_>],
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+) -> (ColouredSurface, f64) {
+    let (surface, buffers) = colour_dense_buffers(dense, cams, pixels, params);
+    let ids: Vec<&[u32]> = buffers.iter().map(ItemBuffer::ids).collect();
+    let error = reprojection_error_in(&surface, views, &ids);
+    (surface, error)
 }
 
 /// Colour the surface of `occupancy` from `views` the way the photo methods colour their results
@@ -917,39 +978,59 @@ pub fn colour_surface(
 /// difference per channel (8-bit levels) over all such pixels of all views. Views without a mask
 /// count covered pixels only.
 pub fn reprojection_error(grid: &VoxelGrid, surface: &ColouredSurface, views: &[PhotoView<'_>]) -> f64 {
-    let (sum, n) = views
-        .par_iter()
-        .map(|view| {
-            let cam = VoxelCamera::new(&view.camera, grid);
-            if view.image.dimensions() != (view.camera.width, view.camera.height) {
-                return (0.0, 0u64);
-            }
-            let buf = ItemBuffer::render(&cam, &surface.voxels);
-            let img = view.image.as_raw();
-            let (mut sum, mut n) = (0f64, 0u64);
-            for y in 0..cam.height {
-                for x in 0..cam.width {
-                    let id = buf.get(x, y);
-                    let inside = view.mask.is_some_and(|m| m.get(x as u32, y as u32));
-                    if id == ItemBuffer::NONE && !inside {
-                        continue;
-                    }
-                    let model = surface.colours.get(id as usize).copied().unwrap_or([0, 0, 0]);
-                    let p = 3 * (y * cam.width + x);
-                    for c in 0..3 {
-                        sum += (img[p + c] as f64 - model[c] as f64).abs();
-                    }
-                    n += 3;
-                }
-            }
-            (sum, n)
-        })
-        .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+    mean_error(views.par_iter().map(|view| {
+        if view.image.dimensions() != (view.camera.width, view.camera.height) {
+            return (0.0, 0);
+        }
+        let buf = ItemBuffer::render(&VoxelCamera::new(&view.camera, grid), &surface.voxels);
+        view_error(surface, view, buf.ids())
+    }))
+}
+
+/// [`reprojection_error`] with each view's item buffer of `surface.voxels` given: `ids[n]` holds,
+/// per pixel of view `n` (row-major), the index into `surface.voxels` of the voxel seen there or
+/// [`ItemBuffer::NONE`].
+fn reprojection_error_in(surface: &ColouredSurface, views: &[PhotoView<'_>], ids: &[&[u32]]) -> f64 {
+    mean_error(views.par_iter().zip(ids).map(|(view, ids)| {
+        if view.image.dimensions() != (view.camera.width, view.camera.height) {
+            return (0.0, 0);
+        }
+        view_error(surface, view, ids)
+    }))
+}
+
+/// The mean of per-view (sum of absolute differences, values) pairs; 0 without values.
+fn mean_error(per_view: impl ParallelIterator<Item = (f64, u64)>) -> f64 {
+    let (sum, n) = per_view.reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
     if n == 0 {
         0.0
     } else {
         sum / n as f64
     }
+}
+
+/// One view's sum of absolute differences (8-bit levels) between its image and `surface` painted
+/// through item buffer `ids` (see [`reprojection_error_in`]), and the number of values summed.
+fn view_error(surface: &ColouredSurface, view: &PhotoView<'_>, ids: &[u32]) -> (f64, u64) {
+    let (w, h) = (view.camera.width as usize, view.camera.height as usize);
+    let img = view.image.as_raw();
+    let (mut sum, mut n) = (0f64, 0u64);
+    for y in 0..h {
+        for x in 0..w {
+            let id = ids.get(y * w + x).copied().unwrap_or(ItemBuffer::NONE);
+            let inside = view.mask.is_some_and(|m| m.get(x as u32, y as u32));
+            if id == ItemBuffer::NONE && !inside {
+                continue;
+            }
+            let model = surface.colours.get(id as usize).copied().unwrap_or([0, 0, 0]);
+            let p = 3 * (y * w + x);
+            for c in 0..3 {
+                sum += (img[p + c] as f64 - model[c] as f64).abs();
+            }
+            n += 3;
+        }
+    }
+    (sum, n)
 }
 
 #[cfg(test)]
@@ -1147,6 +1228,71 @@ mod tests {
         let ring_views: Vec<PhotoView<'_>> =
             ring.iter().map(|c| PhotoView { camera: *c, image: &img, mask: None }).collect();
         assert!(matches!(color_voxels(&hull, &ring_views, &params), Err(PhotoError::NoOrdinalOrder { .. })));
+    }
+
+    #[test]
+    fn voxel_colouring_through_a_distorting_lens_with_silhouettes_matches_every_voxel() {
+        use crate::pipeline::silhouette::Mask;
+        let (truth, hull) = scene();
+        let cams: Vec<CameraModel> = (0..5)
+            .map(|n| {
+                let mut c = camera(-40.0 + n as f64 * 20.0, 55.0);
+                (c.intrinsics.k1, c.intrinsics.k2, c.intrinsics.p1) = (-0.05, 0.02, 0.002);
+                c
+            })
+            .collect();
+        let images = render(&truth, &cams);
+        let boundary = truth.boundary_voxels();
+        let masks: Vec<Mask> = cams
+            .iter()
+            .map(|c| {
+                let cover = VoxelCamera::new(c, &grid()).cover(&boundary);
+                Mask::from_fn(c.width, c.height, |x, y| cover[(y * c.width + x) as usize])
+            })
+            .collect();
+        let views: Vec<PhotoView<'_>> = cams
+            .iter()
+            .zip(&images)
+            .zip(&masks)
+            .map(|((c, i), m)| PhotoView { camera: *c, image: i, mask: Some(m) })
+            .collect();
+        let params = PhotoParams { threshold: 10.0, min_cos: 0.0, ..PhotoParams::default() };
+        let model = color_voxels(&hull, &views, &params).expect("ordinal order holds");
+        let every = color_voxels_every_voxel(&hull, &views, &params).expect("ordinal order holds");
+        assert!(every.stats.carved > 0);
+        assert_eq!(model.occupancy.first_difference(&every.occupancy), None);
+        assert_eq!(model.surface, every.surface);
+        assert_eq!(model.stats.carved, every.stats.carved);
+        // Bricks are dropped (or views closed) through the lens too: fewer voxels are visited.
+        assert!(model.stats.visits < hull.count(), "{} visits of {}", model.stats.visits, hull.count());
+    }
+
+    #[test]
+    fn colours_and_errors_from_shared_item_buffers_equal_rendering_them_again() {
+        let (truth, hull) = scene();
+        let cams: Vec<CameraModel> = (0..5).map(|n| camera(-40.0 + n as f64 * 20.0, 55.0)).collect();
+        let images = render(&truth, &cams);
+        let views: Vec<PhotoView<'_>> =
+            cams.iter().zip(&images).map(|(c, i)| PhotoView { camera: *c, image: i, mask: None }).collect();
+        let params = PhotoParams { threshold: 10.0, min_cos: 0.2, ..PhotoParams::default() };
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * b.abs().max(1.0);
+        // The noise measurement's colouring of the start is colour_surface's.
+        let (noise, surface, error) = measure_noise_and_colour(&hull, &views, &params).expect("measures");
+        assert_eq!(noise, measure_noise(&hull, &views, &params).expect("measures"));
+        assert_eq!(surface, colour_surface(&hull, &views, &params).expect("colours"));
+        assert!(close(error, reprojection_error(&grid(), &surface, &views)), "{error}");
+        // Each method's error is its surface's.
+        let models = [
+            color_voxels(&hull, &views, &params).expect("ordinal order holds"),
+            color_voxels_every_voxel(&hull, &views, &params).expect("ordinal order holds"),
+            carve_photo(&hull, &views, &params).expect("carves"),
+            carve_photo_surface(&hull, &views, &params).expect("carves"),
+        ];
+        for m in &models {
+            assert!(m.stats.carved > 0);
+            let want = reprojection_error(&grid(), &m.surface, &views);
+            assert!(close(m.reprojection_error, want), "{} vs {want}", m.reprojection_error);
+        }
     }
 
     #[test]

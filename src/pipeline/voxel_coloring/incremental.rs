@@ -430,17 +430,35 @@ impl<'a> Carver<'a> {
 }
 
 /// The colour spread between views (see `photo_consistency::colour_spread`) of every surface voxel
-/// of `start` that at least `params.min_views` views see, under item buffers of that surface.
-pub(super) fn surface_spreads(start: &Occupancy, views: &[PhotoView<'_>], params: &PhotoParams) -> Vec<f32> {
+/// of `start` that at least `params.min_views` views see, under item buffers of that surface; and
+/// that surface coloured as `super::colour_surface` colours it, with its re-projection error in
+/// `views` (the same item buffers, so the same figures).
+pub(super) fn surface_spreads(
+    start: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+) -> (Vec<f32>, ColouredSurface, f64) {
     let c = Carver::new(start, views);
-    (0..c.voxels.len() as u32)
+    let per_voxel: Vec<([u8; 3], bool, Option<f32>)> = (0..c.voxels.len() as u32)
         .into_par_iter()
-        .filter_map(|s| {
+        .map(|s| {
             let v = c.voxels[s as usize];
             let samples = colour_samples(&c.cams, &c.pixels, &c.states, v, s, c.normal(v), params);
-            (samples.len() >= params.min_views).then(|| colour_spread(&samples))
+            let spread = (samples.len() >= params.min_views).then(|| colour_spread(&samples));
+            (surface_colour(&samples), !samples.is_empty(), spread)
         })
-        .collect()
+        .collect();
+    let spreads = per_voxel.iter().filter_map(|p| p.2).collect();
+    // Slots were handed out in surface order (increasing linear index) and none is dead, so slot
+    // numbers are indices into the surface and the view states' buffers are its item buffers.
+    let surface = ColouredSurface {
+        voxels: c.voxels.clone(),
+        colours: per_voxel.iter().map(|p| p.0).collect(),
+        seen: per_voxel.iter().map(|p| p.1).collect(),
+    };
+    let ids: Vec<&[u32]> = c.states.iter().map(|st| st.id.as_slice()).collect();
+    let error = super::reprojection_error_in(&surface, views, &ids);
+    (spreads, surface, error)
 }
 
 /// See [`super::carve_photo`].
@@ -477,11 +495,13 @@ pub(super) fn carve(
     let restored = restore_silhouettes(start, &mut c.dense, views);
     stats.carved -= restored;
     let occupancy = c.dense.to_occupancy(grid);
-    let surface = if restored == 0 {
-        c.coloured_surface(params)
+    let (surface, reprojection_error) = if restored == 0 {
+        let surface = c.coloured_surface(params);
+        let error = super::reprojection_error(&grid, &surface, views);
+        (surface, error)
     } else {
-        super::colour_dense(&c.dense, &c.cams, &c.pixels, params)
+        super::colour_dense_with_error(&c.dense, &c.cams, &c.pixels, views, params)
     };
     stats.seconds = t.elapsed().as_secs_f64();
-    Ok(PhotoModel { occupancy, surface, stats })
+    Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
 }

@@ -4,19 +4,21 @@
 //! voxels are looked at. The start is cut into 4³ bricks. A brick joins the sweep at the first layer
 //! any of its voxels is in and leaves it after the last; when a layer reaches it, the brick's pixel
 //! rectangle in every view (every footprint of its voxels lies in it, see
-//! `VoxelCamera::box_pixels`) is checked against the claimed pixels: when every view's rectangle is
-//! claimed, none of its voxels can see an unclaimed pixel in this or any later layer (claims only
-//! grow), so each would be left unseen and kept; the brick is dropped without projecting a voxel.
-//! Interior bricks go that way as soon as the surface in front of them is kept. Without a bound (a
-//! corner behind a camera, a distorting lens) a brick is never dropped. The result is the same,
-//! voxel for voxel.
+//! `VoxelCamera::box_pixels`, which also bounds distorting lenses) is checked against the claimed
+//! pixels: when every pixel of every view's rectangle is claimed or outside the view's silhouette,
+//! none of its voxels can sample a pixel in this or any later layer (claims only grow, and pixels
+//! outside a silhouette are never sampled), so each would be left unseen and kept; the brick is
+//! dropped without projecting a voxel. Interior bricks go that way as soon as the surface in front
+//! of them is kept. Without a bound (a corner behind a camera) a brick is never dropped. The result
+//! is the same, voxel for voxel.
 
 use std::time::Instant;
 
 use rayon::prelude::*;
 
 use super::{
-    claim, colour_dense, colouring_verdict, ordinal_direction, restore_silhouettes, Dense, PhotoModel, PhotoStats,
+    claim, colour_dense_with_error, colouring_verdict_in, ordinal_direction, restore_silhouettes, Dense, PhotoModel,
+    PhotoStats,
 };
 use crate::pipeline::occupancy::Occupancy;
 use crate::pipeline::photo_consistency::{check_inputs, PhotoError, PhotoParams, PhotoView, ViewPixels, VoxelCamera};
@@ -34,7 +36,12 @@ struct Brick {
     first: i32,
     last: i32,
     /// Per view, the pixel rectangle holding its footprints; `None` without a bound.
-    rects: Option<Vec<[usize; 4]>>,
+    rects: Vec<Option<[usize; 4]>>,
+    /// The views (increasing) that may still see one of its voxels: every view at first, then
+    /// the ones whose rectangle is not yet all claimed or outside the silhouette (or that have no
+    /// rectangle); with each, the number (row-major within the rectangle) of the first pixel
+    /// found unsettled there, where the next check resumes.
+    open: Vec<(u32, usize)>,
 }
 
 /// See [`super::color_voxels`].
@@ -44,23 +51,32 @@ pub(super) fn color(
     params: &PhotoParams,
 ) -> Result<PhotoModel, PhotoError> {
     check_inputs(start.grid(), views, params)?;
-    let d = ordinal_direction(start.grid(), views)?;
-    color_along(start, views, params, d)
+    let t = Instant::now();
+    let grid = *start.grid();
+    let d = ordinal_direction(&grid, views)?;
+    let pixels = ViewPixels::all(views);
+    let (dense, mut stats) = color_along(start, views, &pixels, params, d);
+    let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let occupancy = dense.to_occupancy(grid);
+    let (surface, reprojection_error) = colour_dense_with_error(&dense, &cams, &pixels, views, params);
+    stats.seconds = t.elapsed().as_secs_f64();
+    Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
 }
 
 /// Voxel colouring from `start` in layers of increasing `d·x` (`d` a unit vector, grid frame, for
-/// which `views` satisfy the ordinal visibility constraint; inputs already checked).
+/// which `views` satisfy the ordinal visibility constraint; inputs already checked), with `pixels`
+/// the views' [`ViewPixels`] (same order): the carved occupancy (silhouettes restored, see
+/// `restore_silhouettes`) and the counters (`seconds` left at 0).
 pub(super) fn color_along(
     start: &Occupancy,
     views: &[PhotoView<'_>],
+    pixels: &[ViewPixels<'_>],
     params: &PhotoParams,
     d: [f64; 3],
-) -> Result<PhotoModel, PhotoError> {
-    let t = Instant::now();
+) -> (Dense, PhotoStats) {
     let grid = *start.grid();
     let d = d.map(|x| x as f32);
     let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
-    let pixels = ViewPixels::all(views);
     let mut dense = Dense::from(start);
     let key = |v: [u32; 3]| (d[0] * v[0] as f32 + d[1] * v[1] as f32 + d[2] * v[2] as f32).floor() as i32;
 
@@ -85,8 +101,8 @@ pub(super) fn color_along(
                 }
             }
             (first <= last).then(|| {
-                let rects: Option<Vec<[usize; 4]>> = cams.iter().map(|c| c.box_pixels(lo, hi)).collect();
-                Brick { lo, hi, first, last, rects }
+                let rects: Vec<Option<[usize; 4]>> = cams.iter().map(|c| c.box_pixels(lo, hi)).collect();
+                Brick { lo, hi, first, last, rects, open: (0..cams.len() as u32).map(|n| (n, 0)).collect() }
             })
         })
         .collect();
@@ -96,10 +112,9 @@ pub(super) fn color_along(
     let mut stats = PhotoStats::default();
     let mut next = 0; // next brick to join
     let mut active: Vec<usize> = Vec::new();
-    let mut layer_voxels: Vec<[u32; 3]> = Vec::new();
+    let mut layer_voxels: Vec<([u32; 3], usize)> = Vec::new();
     let (Some(l0), Some(l1)) = (bricks.first().map(|b| b.first), bricks.iter().map(|b| b.last).max()) else {
-        let surface = colour_dense(&dense, &cams, &pixels, params);
-        return Ok(PhotoModel { occupancy: start.clone(), surface, stats });
+        return (dense, stats);
     };
     for layer in l0..=l1 {
         while next < bricks.len() && bricks[next].first == layer {
@@ -107,12 +122,23 @@ pub(super) fn color_along(
             next += 1;
         }
         active.retain(|&b| bricks[b].last >= layer);
-        // Drop the bricks every view's claims cover.
+        // Close the views in which a brick's rectangle is all claimed or outside the silhouette,
+        // and drop the bricks no view is open in.
         active.retain(|&b| {
-            let Some(rects) = &bricks[b].rects else { return true };
-            !rects.iter().zip(&claimed).zip(&cams).all(|((r, marks), cam)| {
-                (r[2]..r[3]).all(|y| marks[y * cam.width + r[0]..y * cam.width + r[1]].iter().all(|&m| m))
-            })
+            let brick = &mut bricks[b];
+            let rects = &brick.rects;
+            brick.open.retain_mut(|(n, from)| {
+                let n = *n as usize;
+                let Some(r) = rects[n] else { return true };
+                match pixels[n].first_unsettled(&claimed[n], r, *from) {
+                    Some(k) => {
+                        *from = k;
+                        true
+                    }
+                    None => false,
+                }
+            });
+            !brick.open.is_empty()
         });
         layer_voxels.clear();
         for &b in &active {
@@ -122,7 +148,7 @@ pub(super) fn color_along(
                     for i in lo[0]..hi[0] {
                         let v = [i, j, k];
                         if key(v) == layer && dense.get(i as i64, j as i64, k as i64) {
-                            layer_voxels.push(v);
+                            layer_voxels.push((v, b));
                         }
                     }
                 }
@@ -132,10 +158,15 @@ pub(super) fn color_along(
             continue;
         }
         stats.iterations += 1;
-        let verdicts: Vec<Option<bool>> =
-            layer_voxels.par_iter().map(|&v| colouring_verdict(&dense, &cams, &pixels, &claimed, v, params)).collect();
+        let verdicts: Vec<Option<bool>> = layer_voxels
+            .par_iter()
+            .map(|&(v, b)| {
+                let open = bricks[b].open.iter().map(|&(n, _)| n as usize);
+                colouring_verdict_in(&dense, &cams, pixels, &claimed, v, params, open)
+            })
+            .collect();
         stats.visits += layer_voxels.len() as u64;
-        for (&v, verdict) in layer_voxels.iter().zip(&verdicts) {
+        for (&(v, _), verdict) in layer_voxels.iter().zip(&verdicts) {
             match verdict {
                 Some(false) => {
                     dense.clear(v);
@@ -147,8 +178,5 @@ pub(super) fn color_along(
         }
     }
     stats.carved -= restore_silhouettes(start, &mut dense, views);
-    let occupancy = dense.to_occupancy(grid);
-    let surface = colour_dense(&dense, &cams, &pixels, params);
-    stats.seconds = t.elapsed().as_secs_f64();
-    Ok(PhotoModel { occupancy, surface, stats })
+    (dense, stats)
 }

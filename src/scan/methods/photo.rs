@@ -8,15 +8,14 @@
 //! is coloured the same way as the result, so the two can be compared (ground truth on simulated
 //! rigs, photometric re-projection always).
 
-use std::collections::HashMap;
-
 use nalgebra::Vector3;
+use rayon::prelude::*;
 
 use crate::config::{Method, PhotoConfig};
 use crate::geometry::VoxelGrid;
 use crate::pipeline::photo_consistency::UNSEEN_COLOUR;
 use crate::pipeline::{
-    carve_photo, color_voxels_sweeps, colour_surface, measure_noise, ordinal_sweeps, reprojection_error,
+    carve_photo, color_voxels_sweeps, colour_surface, measure_noise_and_colour, ordinal_sweeps, reprojection_error,
     ColouredSurface, Occupancy, PhotoError, PhotoParams, PhotoView, TriangleMesh,
 };
 use crate::scan::report::{PhotoReport, VisualHull};
@@ -62,60 +61,81 @@ pub struct PhotoOutputs {
     pub report: PhotoReport,
 }
 
+/// Marks a voxel of [`PhotoOutputs::colour_grid`] that no seen surface voxel colours.
+const NO_COLOUR: u32 = u32::MAX;
+
 impl PhotoOutputs {
-    fn lookup(&self) -> HashMap<[u32; 3], [u8; 3]> {
-        self.surface
-            .voxels
-            .iter()
-            .zip(&self.surface.colours)
-            .zip(&self.surface.seen)
-            .filter(|(_, &seen)| seen)
-            .map(|((v, c), _)| (*v, *c))
-            .collect()
+    /// Per voxel of the grid (linear index), the colour of the seen surface voxel there packed as
+    /// `0xRRGGBB`, else [`NO_COLOUR`]: a flat table, so looking a voxel up costs one load.
+    fn colour_grid(&self) -> Vec<u32> {
+        let mut out = vec![NO_COLOUR; self.grid.len()];
+        for ((v, c), &seen) in self.surface.voxels.iter().zip(&self.surface.colours).zip(&self.surface.seen) {
+            if seen {
+                out[self.grid.index(v[0] as usize, v[1] as usize, v[2] as usize)] =
+                    u32::from_be_bytes([0, c[0], c[1], c[2]]);
+            }
+        }
+        out
     }
 
     /// Colours of the occupied voxels of `occupancy` in `for_each_occupied` order: surface voxels
     /// take their colour, interior and unseen voxels [`UNSEEN_COLOUR`].
     pub fn voxel_colours(&self, occupancy: &Occupancy) -> Vec<[u8; 3]> {
-        let map = self.lookup();
+        let table = self.colour_grid();
+        let d = self.grid.dims;
         let mut out = Vec::new();
         occupancy.for_each_occupied(|i, j, k| {
-            out.push(map.get(&[i as u32, j as u32, k as u32]).copied().unwrap_or(UNSEEN_COLOUR))
+            let c = if i < d[0] && j < d[1] && k < d[2] { table[self.grid.index(i, j, k)] } else { NO_COLOUR };
+            out.push(unpack(c))
         });
         out
     }
 
     /// Vertex colours of a mesh of the result: each vertex takes the colour of the nearest seen
-    /// surface voxel within two voxels ([`UNSEEN_COLOUR`] when there is none).
+    /// surface voxel within two voxels ([`UNSEEN_COLOUR`] when there is none); ties go to the
+    /// first in z, y, x order of the offsets.
     pub fn mesh_colours(&self, mesh: &TriangleMesh) -> Vec<[u8; 3]> {
-        let map = self.lookup();
+        let table = self.colour_grid();
         let g = &self.grid;
+        let dims = g.dims.map(|d| d as i64);
         let s = g.voxel_size as f32;
         mesh.vertices
-            .iter()
+            .par_iter()
             .map(|p| {
                 let f = [0, 1, 2].map(|a| (p[a] - g.origin[a] as f32) / s - 0.5);
                 let base = f.map(|x| x.round() as i64);
-                let mut best: Option<(f32, [u8; 3])> = None;
+                let mut best: Option<(f32, u32)> = None;
                 for dz in -2..=2i64 {
                     for dy in -2..=2i64 {
                         for dx in -2..=2i64 {
                             let c = [base[0] + dx, base[1] + dy, base[2] + dz];
-                            if c.iter().any(|&x| x < 0 || x > u32::MAX as i64) {
+                            if (0..3).any(|a| c[a] < 0 || c[a] >= dims[a]) {
                                 continue;
                             }
-                            let Some(col) = map.get(&c.map(|x| x as u32)) else { continue };
+                            let col = table[g.index(c[0] as usize, c[1] as usize, c[2] as usize)];
+                            if col == NO_COLOUR {
+                                continue;
+                            }
                             let d2: f32 = (0..3).map(|a| (c[a] as f32 - f[a]).powi(2)).sum();
                             if best.is_none_or(|(b, _)| d2 < b) {
-                                best = Some((d2, *col));
+                                best = Some((d2, col));
                             }
                         }
                     }
                 }
-                best.map_or(UNSEEN_COLOUR, |b| b.1)
+                best.map_or(UNSEEN_COLOUR, |b| unpack(b.1))
             })
             .collect()
     }
+}
+
+/// The colour of a [`PhotoOutputs::colour_grid`] entry ([`UNSEEN_COLOUR`] for [`NO_COLOUR`]).
+fn unpack(c: u32) -> [u8; 3] {
+    if c == NO_COLOUR {
+        return UNSEEN_COLOUR;
+    }
+    let [_, r, g, b] = c.to_be_bytes();
+    [r, g, b]
 }
 
 /// Mean absolute colour error per channel (0..255) of the seen surface voxels next to the true
@@ -158,20 +178,36 @@ pub fn reconstruct_photo(
     let grid = *hull.grid();
     let used = views;
     // The threshold: fixed by the configuration, else derived from the measured noise of these
-    // views over the hull's surface.
-    let (params, noise) = match config.threshold {
-        Some(_) => (photo_params(config), None),
+    // views over the hull's surface. Measuring it colours the hull's surface on the way (the
+    // colouring only depends on `min_cos`, not on the threshold).
+    let (params, noise, hull_coloured) = match config.threshold {
+        Some(_) => (photo_params(config), None, None),
         None => {
             let p = photo_params(config);
-            let noise = measure_noise(hull, used, &p)?;
+            let (noise, surface, error) = measure_noise_and_colour(hull, used, &p)?;
             tracing::info!(threshold = noise.threshold(), image_sigma = noise.image_sigma, "photo threshold measured");
-            (p.with_measured_noise(&noise), Some(noise))
+            (p.with_measured_noise(&noise), Some(noise), Some((surface, error)))
         }
     };
-    let model = if method == Method::VoxelColoring {
-        color_voxels_sweeps(hull, used, &params)?
-    } else {
-        carve_photo(hull, used, &params)?
+    let carve = || {
+        if method == Method::VoxelColoring {
+            color_voxels_sweeps(hull, used, &params)
+        } else {
+            carve_photo(hull, used, &params)
+        }
+    };
+    // Without a measurement, the hull is coloured alongside the carving (they are independent).
+    let (model, (hull_surface, hull_reprojection)) = match hull_coloured {
+        Some(h) => (carve()?, h),
+        None => {
+            let colour_hull = || -> Result<(ColouredSurface, f64), PhotoError> {
+                let surface = colour_surface(hull, used, &params)?;
+                let error = reprojection_error(&grid, &surface, used);
+                Ok((surface, error))
+            };
+            let (model, h) = rayon::join(carve, colour_hull);
+            (model?, h?)
+        }
     };
     tracing::info!(
         method = method.name(),
@@ -181,7 +217,6 @@ pub fn reconstruct_photo(
         seconds = model.stats.seconds,
         "photo-consistency done"
     );
-    let hull_surface = colour_surface(hull, used, &params)?;
     let hull_overlap = truth.and_then(|t| hull.iou_and_containment(t.occupancy).ok());
     let visual_hull = VisualHull {
         voxels: hull.count(),
@@ -189,7 +224,7 @@ pub fn reconstruct_photo(
         iou: hull_overlap.map(|o| o.iou),
         containment: hull_overlap.map(|o| o.containment),
         colour_error: truth.and_then(|t| colour_error(&hull_surface, &grid, t)),
-        reprojection_error: Some(reprojection_error(&grid, &hull_surface, used)),
+        reprojection_error: Some(hull_reprojection),
     };
     let report = PhotoReport {
         threshold: f64::from(params.threshold),
@@ -208,7 +243,7 @@ pub fn reconstruct_photo(
         seconds: model.stats.seconds,
         surface_voxels: model.surface.voxels.len(),
         seen_surface_voxels: model.surface.seen.iter().filter(|&&s| s).count(),
-        reprojection_error: reprojection_error(&grid, &model.surface, used),
+        reprojection_error: model.reprojection_error,
     };
     let colour_error = truth.and_then(|t| colour_error(&model.surface, &grid, t));
     Ok((model.occupancy, PhotoOutputs { grid, surface: model.surface, colour_error, visual_hull, report }))
