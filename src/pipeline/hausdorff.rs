@@ -193,7 +193,8 @@ impl<'a> TriangleIndex<'a> {
 /// The sampled symmetric Hausdorff distance between `a` and `b` (module docs), with `samples` area
 /// samples per surface besides its vertices; `None` when either has no triangle.
 pub fn hausdorff_distance(a: &TriangleMesh, b: &TriangleMesh, samples: usize) -> Option<Hausdorff> {
-    let (ia, ib) = (TriangleIndex::new(a)?, TriangleIndex::new(b)?);
+    let (ia, ib) = rayon::join(|| TriangleIndex::new(a), || TriangleIndex::new(b));
+    let (ia, ib) = (ia?, ib?);
     let directed = |from: &TriangleMesh, to: &TriangleIndex<'_>, seed: u64| -> (f64, f64, usize) {
         let mut pts: Vec<[f32; 3]> = from.vertices.clone();
         pts.extend(sample_mesh(from, samples, seed));
@@ -201,8 +202,7 @@ pub fn hausdorff_distance(a: &TriangleMesh, b: &TriangleMesh, samples: usize) ->
         let max = d.iter().copied().fold(0.0, f64::max);
         (max, d.iter().sum::<f64>(), d.len())
     };
-    let (f, fs, fn_) = directed(a, &ib, 11);
-    let (g, gs, gn) = directed(b, &ia, 12);
+    let ((f, fs, fn_), (g, gs, gn)) = rayon::join(|| directed(a, &ib, 11), || directed(b, &ia, 12));
     Some(Hausdorff {
         forward_m: f,
         backward_m: g,
