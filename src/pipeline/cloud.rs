@@ -1170,6 +1170,9 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
     }
     let points = sdf.index.points();
     let normals = &sdf.normals;
+    // Voxel centres per axis, as `grid.centre` gives them in f32.
+    let centres: [Vec<f32>; 3] =
+        [0, 1, 2].map(|a| (0..dims[a]).map(|i| (grid.origin[a] + (i as f64 + 0.5) * grid.voxel_size) as f32).collect());
     while let Some((d2, idx)) = heap.pop() {
         let idx = idx as usize;
         if d2 > dist2[idx] {
@@ -1181,8 +1184,8 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
             if in_band[n] {
                 return;
             }
-            let q = grid.centre(c[0], c[1], c[2]);
-            let d2 = (q.x as f32 - p[0]).powi(2) + (q.y as f32 - p[1]).powi(2) + (q.z as f32 - p[2]).powi(2);
+            let q = [centres[0][c[0]], centres[1][c[1]], centres[2][c[2]]];
+            let d2 = (q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2) + (q[2] - p[2]).powi(2);
             if d2 < dist2[n] && d2 <= reach2 {
                 dist2[n] = d2;
                 near[n] = near[idx];
