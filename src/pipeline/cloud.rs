@@ -4,7 +4,8 @@
 //! build each view's points in the rig frame and turn them into the object frame (fixed to the
 //! turntable top, see [`crate::geometry`]) with [`PointCloud::rig_to_object`] before merging.
 //!
-//! - Nearest neighbours come from [`KnnIndex`], a uniform hash grid with a shell search.
+//! - Nearest neighbours come from [`KnnIndex`], a dense array of uniform cells with a shell search
+//!   (exact: ties go to the lower point index).
 //! - Normals ([`PointCloud::estimate_normals`]): the eigenvector of the smallest eigenvalue of the
 //!   covariance of the `k` nearest points (PCA), flipped to face the point's viewpoint (the sensor
 //!   that saw it).
@@ -23,11 +24,11 @@
 //!   outside bubbles are flipped. The inside voxels form an
 //!   [`Occupancy`] whose surface is extracted by marching tetrahedra ([`extract_surface`], closed and
 //!   consistently oriented); each vertex is then moved onto the zero crossing of the signed distance
-//!   by Newton steps, for sub-voxel accuracy.
+//!   by Newton steps (until the distance is within [`NEWTON_TOLERANCE_VOXELS`] of a voxel edge), for
+//!   sub-voxel accuracy.
 
 use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap, VecDeque};
-use std::hash::{BuildHasherDefault, Hasher};
 use std::path::Path;
 
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
@@ -425,6 +426,10 @@ const SUPPORT_NEIGHBOURS: usize = 3;
 /// See [`SUPPORT_NEIGHBOURS`].
 const SUPPORT_KERNELS: f64 = 3.0;
 
+/// The Newton refinement of a mesh vertex stops once the signed distance there is within this many
+/// voxel edges of zero (the next step would move it less than about that far).
+pub const NEWTON_TOLERANCE_VOXELS: f64 = 1e-4;
+
 /// Largest neighbour count of the k-nearest-neighbour operations.
 const MAX_K: usize = 64;
 
@@ -454,20 +459,34 @@ fn pca_normal(points: &[[f32; 3]], neighbours: &[(f32, u32)]) -> Option<(Vector3
     v.try_normalize(1e-12).map(|v| (v, linear))
 }
 
-/// A k-nearest-neighbour index over a fixed set of points (metres): a hash of cubic cells, queried by
-/// visiting shells of cells around the query's cell until no unvisited shell can hold a closer point.
+/// A k-nearest-neighbour index over a fixed set of points (metres): a dense array of cubic cells
+/// over the points' bounding box, queried by visiting shells of cells around the query's cell until
+/// no unvisited shell can hold a closer point. Points are stored grouped by cell, cells in `x`-fastest
+/// order, so a row of cells along `x` is one contiguous run of points. Results are exact and do not
+/// depend on the cell size: ties in distance go to the lower point index.
 #[derive(Debug, Clone)]
 pub struct KnnIndex {
     cell_m: f32,
-    /// Cell (packed by [`pack`]) -> range in `order`.
-    cells: HashMap<u64, (u32, u32), BuildHasherDefault<CellHasher>>,
+    /// Cell coordinates of the array's first cell (the lowest occupied cell on each axis).
+    cell_lo: [i32; 3],
+    /// Cells of the array along each axis.
+    dims: [usize; 3],
+    /// `starts[c]..starts[c + 1]` is cell `c`'s range in `order` and `sorted` (cell index
+    /// `x + dims[0] * (y + dims[1] * z)`, relative to `cell_lo`); one more entry than cells.
+    starts: Vec<u32>,
     /// Point indices grouped by cell.
     order: Vec<u32>,
+    /// The points of `order`, in that order (metres).
+    sorted: Vec<[f32; 3]>,
     /// The points, in input order.
     points: Vec<[f32; 3]>,
-    cell_lo: [i32; 3],
-    cell_hi: [i32; 3],
 }
+
+/// The cell array of a [`KnnIndex`] holds at most this many cells per indexed point (plus
+/// [`MIN_CELL_BUDGET`]); sparser points get larger cells.
+const CELLS_PER_POINT: usize = 32;
+/// See [`CELLS_PER_POINT`].
+const MIN_CELL_BUDGET: usize = 1 << 15;
 
 impl KnnIndex {
     /// Index `points` with cells of about twice the mean spacing of a surface sample (the bounding
@@ -480,41 +499,55 @@ impl KnnIndex {
         KnnIndex::with_cell(cloud.points, cell)
     }
 
-    /// Index `points` with cubic cells of `cell_m` metres (positive; enlarged if the points span more
-    /// than 2^20 cells along an axis).
+    /// Index `points` with cubic cells of `cell_m` metres (positive; enlarged so the cell array over
+    /// the points' bounding box holds at most [`CELLS_PER_POINT`] cells per point).
     pub fn with_cell(points: Vec<[f32; 3]>, cell_m: f32) -> KnnIndex {
         let mut cell_m = if cell_m.is_finite() && cell_m > 0.0 { cell_m } else { 1.0 };
-        let span = points
-            .iter()
-            .filter(|p| p.iter().all(|x| x.is_finite()))
-            .flat_map(|p| p.iter().map(|x| x.abs()))
-            .fold(0.0f32, f32::max);
-        cell_m = cell_m.max(2.0 * span / (1u32 << 20) as f32);
-        let mut keyed: Vec<([i32; 3], u32)> = points
-            .iter()
-            .enumerate()
-            .filter(|(_, p)| p.iter().all(|x| x.is_finite()))
-            .map(|(i, p)| (cell_key(p, cell_m), i as u32))
-            .collect();
-        keyed.sort_unstable();
-        let mut cells = HashMap::default();
-        let (mut cell_lo, mut cell_hi) = ([i32::MAX; 3], [i32::MIN; 3]);
-        let mut start = 0;
-        while start < keyed.len() {
-            let key = keyed[start].0;
-            let mut end = start;
-            while end < keyed.len() && keyed[end].0 == key {
-                end += 1;
-            }
-            cells.insert(pack(&key), (start as u32, end as u32));
+        let finite = |p: &&[f32; 3]| p.iter().all(|x| x.is_finite());
+        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        let mut count = 0usize;
+        for p in points.iter().filter(finite) {
+            count += 1;
             for a in 0..3 {
-                cell_lo[a] = cell_lo[a].min(key[a]);
-                cell_hi[a] = cell_hi[a].max(key[a]);
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
             }
-            start = end;
         }
-        let order = keyed.into_iter().map(|(_, i)| i).collect();
-        KnnIndex { cell_m, cells, order, points, cell_lo, cell_hi }
+        let budget = CELLS_PER_POINT * count + MIN_CELL_BUDGET;
+        let (cell_lo, dims) = loop {
+            let cl = lo.map(|x| cell_coord(x, cell_m));
+            let ch = hi.map(|x| cell_coord(x, cell_m));
+            let dims =
+                [0, 1, 2].map(|a| if count == 0 { 0 } else { (i64::from(ch[a]) - i64::from(cl[a]) + 1) as usize });
+            let cells = dims.iter().map(|&d| d as f64).product::<f64>();
+            if cells <= budget as f64 {
+                break (cl, dims);
+            }
+            // Too many cells: enlarge them (at least 10% a step, so the loop ends).
+            cell_m *= ((cells / budget as f64).cbrt() as f32).max(1.1);
+        };
+        let ncells = dims[0] * dims[1] * dims[2];
+        let linear = |p: &[f32; 3]| -> usize {
+            let c = [0, 1, 2].map(|a| (cell_coord(p[a], cell_m) - cell_lo[a]) as usize);
+            c[0] + dims[0] * (c[1] + dims[1] * c[2])
+        };
+        // Counting sort of the finite points by cell (stable: input order within a cell).
+        let mut starts = vec![0u32; ncells + 1];
+        let cell_of: Vec<u32> = points.iter().map(|p| if finite(&p) { linear(p) as u32 } else { u32::MAX }).collect();
+        for &c in cell_of.iter().filter(|&&c| c != u32::MAX) {
+            starts[c as usize + 1] += 1;
+        }
+        for c in 0..ncells {
+            starts[c + 1] += starts[c];
+        }
+        let mut fill = starts.clone();
+        let mut order = vec![0u32; count];
+        for (i, &c) in cell_of.iter().enumerate().filter(|(_, &c)| c != u32::MAX) {
+            order[fill[c as usize] as usize] = i as u32;
+            fill[c as usize] += 1;
+        }
+        let sorted = order.iter().map(|&i| points[i as usize]).collect();
+        KnnIndex { cell_m, cell_lo, dims, starts, order, sorted, points }
     }
 
     /// The indexed points, metres.
@@ -535,21 +568,22 @@ impl KnnIndex {
         if k == 0 || self.order.is_empty() || !q.iter().all(|x| x.is_finite()) {
             return;
         }
-        let c = cell_key(q, self.cell_m);
+        // The query's cell, relative to the array (may lie outside it).
+        let c = [0, 1, 2].map(|a| i64::from(cell_coord(q[a], self.cell_m)) - i64::from(self.cell_lo[a]));
+        let d = self.dims.map(|x| x as i64);
         // Distance from q to the faces of its own cell.
         let own = (0..3)
             .map(|a| {
-                let lo = c[a] as f32 * self.cell_m;
+                let lo = (c[a] + i64::from(self.cell_lo[a])) as f32 * self.cell_m;
                 (q[a] - lo).min(lo + self.cell_m - q[a]).max(0.0)
             })
             .fold(f32::INFINITY, f32::min);
-        let reach =
-            (0..3).map(|a| (c[a] - self.cell_lo[a]).abs().max((self.cell_hi[a] - c[a]).abs())).max().unwrap_or(0);
+        let reach = (0..3).map(|a| c[a].abs().max((d[a] - 1 - c[a]).abs())).max().unwrap_or(0);
         // Shells wholly between q and the occupied cells hold nothing.
-        let offset = (0..3).map(|a| (self.cell_lo[a] - c[a]).max(c[a] - self.cell_hi[a]).max(0)).max().unwrap_or(0);
-        if i64::from(offset) * i64::from(offset) * 24 > self.order.len() as i64 {
+        let offset = (0..3).map(|a| (-c[a]).max(c[a] - (d[a] - 1)).max(0)).max().unwrap_or(0);
+        if offset.saturating_mul(offset).saturating_mul(24) > self.order.len() as i64 {
             // Far from every point: scanning all points is cheaper than the empty shells.
-            self.brute_k_nearest(q, k, out);
+            self.offer_range(q, 0, self.order.len(), k, out);
             out.retain(|e| e.0 <= max2);
             return;
         }
@@ -558,77 +592,50 @@ impl KnnIndex {
             if r > 0 {
                 let floor = (r - 1) as f32 * self.cell_m + own;
                 if floor > max_m || (out.len() >= k && out[k - 1].0 <= floor * floor) {
-                    out.retain(|e| e.0 <= max2);
-                    return;
+                    break;
                 }
             }
             if r > reach {
-                out.retain(|e| e.0 <= max2);
-                return;
+                break;
             }
-            for dz in -r..=r {
-                for dy in -r..=r {
-                    let on_face = dz.abs() == r || dy.abs() == r;
-                    let step = if on_face || r == 0 { 1 } else { 2 * r };
-                    let mut dx = -r;
-                    while dx <= r {
-                        if let Some(&(s, e)) = self.cells.get(&pack(&[c[0] + dx, c[1] + dy, c[2] + dz])) {
-                            for &i in &self.order[s as usize..e as usize] {
-                                self.offer(q, i, k, out);
+            // The shell's cells inside the array: full rows on its faces, the two end cells elsewhere.
+            let (x0, x1) = ((c[0] - r).max(0), (c[0] + r).min(d[0] - 1));
+            for z in (c[2] - r).max(0)..=(c[2] + r).min(d[2] - 1) {
+                for y in (c[1] - r).max(0)..=(c[1] + r).min(d[1] - 1) {
+                    let row = (y + d[1] * z) * d[0];
+                    if r == 0 || (z - c[2]).abs() == r || (y - c[1]).abs() == r {
+                        if x0 <= x1 {
+                            let (s, e) = (self.starts[(row + x0) as usize], self.starts[(row + x1 + 1) as usize]);
+                            self.offer_range(q, s as usize, e as usize, k, out);
+                        }
+                    } else {
+                        for x in [c[0] - r, c[0] + r] {
+                            if (0..d[0]).contains(&x) {
+                                let cell = (row + x) as usize;
+                                let (s, e) = (self.starts[cell], self.starts[cell + 1]);
+                                self.offer_range(q, s as usize, e as usize, k, out);
                             }
                         }
-                        dx += step;
                     }
                 }
             }
             r += 1;
         }
+        out.retain(|e| e.0 <= max2);
     }
 
-    /// Consider point `i` for the `k` nearest to `q` in `out` (sorted by squared distance, then index).
+    /// Consider the points `sorted[s..e]` for the `k` nearest to `q` in `out` (sorted by squared
+    /// distance, then index).
     #[inline]
-    fn offer(&self, q: &[f32; 3], i: u32, k: usize, out: &mut Vec<(f32, u32)>) {
-        let p = &self.points[i as usize];
-        let d2 = (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2);
-        if out.len() < k || (d2, i) < out[out.len() - 1] {
-            let at = out.partition_point(|e| (e.0, e.1) < (d2, i));
-            out.insert(at, (d2, i));
-            out.truncate(k);
+    fn offer_range(&self, q: &[f32; 3], s: usize, e: usize, k: usize, out: &mut Vec<(f32, u32)>) {
+        for (p, &i) in self.sorted[s..e].iter().zip(&self.order[s..e]) {
+            let d2 = (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2);
+            if out.len() < k || (d2, i) < out[out.len() - 1] {
+                let at = out.partition_point(|e| (e.0, e.1) < (d2, i));
+                out.insert(at, (d2, i));
+                out.truncate(k);
+            }
         }
-    }
-
-    fn brute_k_nearest(&self, q: &[f32; 3], k: usize, out: &mut Vec<(f32, u32)>) {
-        for &i in &self.order {
-            self.offer(q, i, k, out);
-        }
-    }
-}
-
-/// A cell's coordinates packed 21 bits each. Indexed cells lie within +-2^20 of the origin (see
-/// [`KnnIndex::with_cell`]), so their keys are unique; a query cell far outside may alias an indexed
-/// one, which only costs a wasted look-up, since every candidate's distance is computed.
-#[inline]
-fn pack(c: &[i32; 3]) -> u64 {
-    let m = (1u64 << 21) - 1;
-    ((c[0] as u64) & m) | (((c[1] as u64) & m) << 21) | (((c[2] as u64) & m) << 42)
-}
-
-/// A multiplicative hash for packed cell keys (the standard SipHash dominated the search's time).
-#[derive(Debug, Default, Clone, Copy)]
-struct CellHasher(u64);
-
-impl Hasher for CellHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-    fn write(&mut self, bytes: &[u8]) {
-        for b in bytes {
-            self.0 = (self.0.rotate_left(8) ^ u64::from(*b)).wrapping_mul(0x9e37_79b9_7f4a_7c15);
-        }
-    }
-    fn write_u64(&mut self, x: u64) {
-        let h = (self.0 ^ x).wrapping_mul(0x9e37_79b9_7f4a_7c15);
-        self.0 = h ^ (h >> 29);
     }
 }
 
@@ -707,8 +714,10 @@ fn dist(a: &[f32; 3], b: &[f32; 3]) -> f32 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
 
-fn cell_key(p: &[f32; 3], cell: f32) -> [i32; 3] {
-    p.map(|x| (x / cell).floor().clamp(i32::MIN as f32 / 4.0, i32::MAX as f32 / 4.0) as i32)
+/// The cell coordinate of `x` (metres) along one axis with cells of `cell` metres, clamped to
+/// `±2^29` so sums of coordinates stay in range.
+fn cell_coord(x: f32, cell: f32) -> i32 {
+    (x / cell).floor().clamp(i32::MIN as f32 / 4.0, i32::MAX as f32 / 4.0) as i32
 }
 
 /// Parameters of [`mesh_from_cloud`].
@@ -781,30 +790,146 @@ pub fn mark_lines_of_sight(
     if towards.len() != points.len() {
         return Err(CloudError::AttributeLength { attribute: "normals", len: towards.len(), points: points.len() });
     }
+    for (p, d) in points.iter().zip(towards) {
+        for_each_voxel_on_sight_line(grid, p, d, skip_m, |idx| free[idx] = true);
+    }
+    Ok(())
+}
+
+/// Call `visit` with the index of each voxel of `grid` the line from `p` along the unit direction
+/// `d` crosses (see [`mark_lines_of_sight`]; metres, the grid's frame), sampled every half voxel edge
+/// from `skip_m` metres on until it leaves the grid; a voxel may come more than once. Nothing for a
+/// non-finite point or direction.
+fn for_each_voxel_on_sight_line(
+    grid: &VoxelGrid,
+    p: &[f32; 3],
+    d: &[f32; 3],
+    skip_m: f64,
+    mut visit: impl FnMut(usize),
+) {
     let vs = grid.voxel_size;
     let step = 0.5 * vs;
     let dims = grid.dims;
-    for (p, d) in points.iter().zip(towards) {
-        let p = p.map(f64::from);
-        let d = d.map(f64::from);
-        if !p.iter().chain(&d).all(|x| x.is_finite()) {
-            continue;
-        }
-        let mut t = skip_m.max(0.0);
-        // The ray leaves the grid's box for good once it is outside and moving away on some axis.
-        loop {
-            let q = [0, 1, 2].map(|a| (p[a] + t * d[a] - grid.origin[a]) / vs);
-            let leaving = (0..3).any(|a| (q[a] < 0.0 && d[a] <= 0.0) || (q[a] >= dims[a] as f64 && d[a] >= 0.0));
-            if leaving || t > 1e3 {
-                break;
-            }
-            if (0..3).all(|a| q[a] >= 0.0 && q[a] < dims[a] as f64) {
-                free[grid.index(q[0] as usize, q[1] as usize, q[2] as usize)] = true;
-            }
-            t += step;
-        }
+    let p = p.map(f64::from);
+    let d = d.map(f64::from);
+    if !p.iter().chain(&d).all(|x| x.is_finite()) {
+        return;
     }
-    Ok(())
+    let mut t = skip_m.max(0.0);
+    // The ray leaves the grid's box for good once it is outside and moving away on some axis.
+    loop {
+        let q = [0, 1, 2].map(|a| (p[a] + t * d[a] - grid.origin[a]) / vs);
+        let leaving = (0..3).any(|a| (q[a] < 0.0 && d[a] <= 0.0) || (q[a] >= dims[a] as f64 && d[a] >= 0.0));
+        if leaving || t > 1e3 {
+            break;
+        }
+        if (0..3).all(|a| q[a] >= 0.0 && q[a] < dims[a] as f64) {
+            visit(grid.index(q[0] as usize, q[1] as usize, q[2] as usize));
+        }
+        t += step;
+    }
+}
+
+/// Lines of sight (see [`mark_lines_of_sight`]) gathered as the points arrive: per voxel of the
+/// grid, how many lines cross it, so the lines of points later found to be outliers can be taken
+/// out again. [`SightLineCounts::mark_free`] then gives what [`mark_lines_of_sight`] would have marked
+/// for the points that remain.
+#[derive(Debug, Clone)]
+pub struct SightLineCounts {
+    grid: VoxelGrid,
+    skip_m: f64,
+    /// Lines crossing each voxel (each line counted once per voxel).
+    counts: Vec<u32>,
+}
+
+impl SightLineCounts {
+    /// No lines yet, on `grid`; each line skips its first `skip_m` metres (see
+    /// [`mark_lines_of_sight`]).
+    pub fn new(grid: &VoxelGrid, skip_m: f64) -> SightLineCounts {
+        SightLineCounts { grid: *grid, skip_m, counts: vec![0; grid.len()] }
+    }
+
+    /// Count the line from each point (metres, the grid's frame) along its unit direction in
+    /// `towards` (one per point).
+    pub fn add(&mut self, points: &[[f32; 3]], towards: &[[f32; 3]]) -> Result<(), CloudError> {
+        self.update(points, towards, true)
+    }
+
+    /// Take back lines counted by [`SightLineCounts::add`] (the same points and directions).
+    pub fn remove(&mut self, points: &[[f32; 3]], towards: &[[f32; 3]]) -> Result<(), CloudError> {
+        self.update(points, towards, false)
+    }
+
+    fn update(&mut self, points: &[[f32; 3]], towards: &[[f32; 3]], add: bool) -> Result<(), CloudError> {
+        if towards.len() != points.len() {
+            return Err(CloudError::AttributeLength { attribute: "normals", len: towards.len(), points: points.len() });
+        }
+        for (p, d) in points.iter().zip(towards) {
+            // A line's samples in one voxel come in a row (a straight line, convex voxels):
+            // counting only changes of voxel counts each voxel once per line.
+            let mut last = usize::MAX;
+            for_each_voxel_on_sight_line(&self.grid, p, d, self.skip_m, |idx| {
+                if idx != last {
+                    let c = &mut self.counts[idx];
+                    *c = if add { c.saturating_add(1) } else { c.saturating_sub(1) };
+                    last = idx;
+                }
+            });
+        }
+        Ok(())
+    }
+
+    /// Set `free[idx]` (one entry per voxel of the grid) for every voxel a counted line crosses.
+    pub fn mark_free(&self, free: &mut [bool]) -> Result<(), CloudError> {
+        if free.len() != self.counts.len() {
+            return Err(CloudError::FreeSpaceSize { given: free.len(), expected: self.counts.len() });
+        }
+        for (f, &c) in free.iter_mut().zip(&self.counts) {
+            *f |= c > 0;
+        }
+        Ok(())
+    }
+}
+
+/// A min-priority queue of `(squared distance m², voxel index)` entries, popped by distance then
+/// index, as a binary heap of the pairs would pop them. Entries fall into buckets by distance (a
+/// monotone map, so every entry of a bucket comes before those of the next), each bucket a small
+/// binary heap of the pair packed into one `u64`; far cheaper than one heap over them all.
+struct BucketQueue {
+    buckets: Vec<BinaryHeap<Reverse<u64>>>,
+    /// Buckets per m² of squared distance.
+    scale: f32,
+    /// No bucket below this one holds an entry.
+    current: usize,
+}
+
+/// Buckets of a [`BucketQueue`].
+const QUEUE_BUCKETS: usize = 4096;
+
+impl BucketQueue {
+    /// Buckets spread over squared distances `0..=max_d2` (m²); larger ones share the last bucket.
+    fn new(max_d2: f32) -> BucketQueue {
+        let scale = if max_d2.is_finite() && max_d2 > 0.0 { QUEUE_BUCKETS as f32 / max_d2 } else { 0.0 };
+        BucketQueue { buckets: vec![BinaryHeap::new(); QUEUE_BUCKETS], scale, current: QUEUE_BUCKETS }
+    }
+
+    /// Add an entry; `d2` must be non-negative (the bits of non-negative floats order as they do).
+    fn push(&mut self, d2: f32, idx: u32) {
+        let b = ((d2 * self.scale) as usize).min(QUEUE_BUCKETS - 1);
+        self.buckets[b].push(Reverse((u64::from(d2.to_bits()) << 32) | u64::from(idx)));
+        self.current = self.current.min(b);
+    }
+
+    /// Remove the least entry.
+    fn pop(&mut self) -> Option<(f32, u32)> {
+        while self.current < QUEUE_BUCKETS {
+            if let Some(Reverse(key)) = self.buckets[self.current].pop() {
+                return Some((f32::from_bits((key >> 32) as u32), key as u32));
+            }
+            self.current += 1;
+        }
+        None
+    }
 }
 
 /// The signed distance field of an oriented cloud (module docs), metres, positive outside.
@@ -817,10 +942,66 @@ struct SignedDistance {
     max_m: f32,
 }
 
+/// The points nearest to an origin, gathered once so that evaluations of a [`SignedDistance`] near
+/// it need no search of the index.
+struct Neighbourhood {
+    /// Metres, the cloud's frame.
+    origin: [f32; 3],
+    /// Every indexed point not in `near` is at least this far from `origin`, metres.
+    reach_m: f32,
+    /// `(squared distance from origin m², point index)`, nearest first.
+    near: Vec<(f32, u32)>,
+}
+
+impl Neighbourhood {
+    fn new() -> Neighbourhood {
+        Neighbourhood { origin: [0.0; 3], reach_m: 0.0, near: Vec::new() }
+    }
+}
+
 impl SignedDistance {
     /// Signed distance and its gradient direction (the weighted mean normal) at `p`.
     fn eval(&self, p: &[f32; 3], buf: &mut Vec<(f32, u32)>) -> Option<(f32, [f32; 3])> {
         self.index.k_nearest_within(p, self.k, self.max_m, buf);
+        self.weigh(p, buf)
+    }
+
+    /// Gather into `hood` the `2k` points nearest to `origin` (metres) within `radius_m` metres.
+    fn gather(&self, origin: &[f32; 3], radius_m: f32, hood: &mut Neighbourhood) {
+        let count = (2 * self.k).min(MAX_K);
+        self.index.k_nearest_within(origin, count, radius_m, &mut hood.near);
+        hood.origin = *origin;
+        hood.reach_m = if hood.near.len() < count { radius_m } else { hood.near[count - 1].0.sqrt() };
+    }
+
+    /// As [`SignedDistance::eval`], the same to the last bit, taking the `k` nearest points from
+    /// `hood` when it provably holds them (`p` close enough to its origin), else from the index.
+    fn eval_near(&self, p: &[f32; 3], hood: &Neighbourhood, buf: &mut Vec<(f32, u32)>) -> Option<(f32, [f32; 3])> {
+        // Every point outside `hood` is farther than `clear` from p (the margin covers rounding).
+        let clear = hood.reach_m - dist(p, &hood.origin) - 1e-4 * self.max_m;
+        if clear > 0.0 {
+            buf.clear();
+            let max2 = self.max_m * self.max_m;
+            for &(_, i) in &hood.near {
+                // The index's own arithmetic, so the distances are bit for bit its.
+                let x = &self.index.points[i as usize];
+                let d2 = (x[0] - p[0]).powi(2) + (x[1] - p[1]).powi(2) + (x[2] - p[2]).powi(2);
+                if d2 <= max2 && (buf.len() < self.k || (d2, i) < buf[buf.len() - 1]) {
+                    let at = buf.partition_point(|e| (e.0, e.1) < (d2, i));
+                    buf.insert(at, (d2, i));
+                    buf.truncate(self.k);
+                }
+            }
+            let complete = if buf.len() == self.k { buf[self.k - 1].0 <= clear * clear } else { clear >= self.max_m };
+            if complete {
+                return self.weigh(p, buf);
+            }
+        }
+        self.eval(p, buf)
+    }
+
+    /// The signed distance and gradient at `p` from its nearest points `buf` (as the index gives them).
+    fn weigh(&self, p: &[f32; 3], buf: &[(f32, u32)]) -> Option<(f32, [f32; 3])> {
         let d0 = buf.first()?.0;
         let (mut num, mut den, mut g) = (0.0f32, 0.0f32, [0.0f32; 3]);
         for &(d2, i) in buf.iter() {
@@ -875,6 +1056,13 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
         if f.len() != grid.len() {
             return Err(CloudError::FreeSpaceSize { given: f.len(), expected: grid.len() });
         }
+    }
+    if grid.len() > u32::MAX as usize {
+        return Err(CloudError::Parameter {
+            name: "grid voxels",
+            value: grid.len() as f64,
+            expected: "at most 2^32 - 1",
+        });
     }
     let passable = |idx: usize| free.is_none_or(|f| f[idx]);
     check_k(params.k)?;
@@ -970,20 +1158,24 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
     let mut label = vec![0i8; grid.len()];
     let mut near = vec![u32::MAX; grid.len()];
     let mut dist2 = vec![f32::INFINITY; grid.len()];
-    let mut heap = BinaryHeap::with_capacity(band.len());
+    let reach2 = ((params.hoppe_reach_voxels * vs).powi(2)) as f32;
+    let mut heap = BucketQueue::new(reach2);
     for (&idx, &(sign, p, d2)) in band.iter().zip(&band_eval) {
         label[idx] = sign;
         if p != u32::MAX {
             near[idx] = p;
             dist2[idx] = d2;
-            heap.push(Reverse((d2.to_bits(), idx)));
+            heap.push(d2, idx as u32);
         }
     }
     let points = sdf.index.points();
     let normals = &sdf.normals;
-    let reach2 = ((params.hoppe_reach_voxels * vs).powi(2)) as f32;
-    while let Some(Reverse((bits, idx))) = heap.pop() {
-        if f32::from_bits(bits) > dist2[idx] {
+    // Voxel centres per axis, as `grid.centre` gives them in f32.
+    let centres: [Vec<f32>; 3] =
+        [0, 1, 2].map(|a| (0..dims[a]).map(|i| (grid.origin[a] + (i as f64 + 0.5) * grid.voxel_size) as f32).collect());
+    while let Some((d2, idx)) = heap.pop() {
+        let idx = idx as usize;
+        if d2 > dist2[idx] {
             continue;
         }
         let [i, j, k] = unravel(idx);
@@ -992,12 +1184,12 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
             if in_band[n] {
                 return;
             }
-            let q = grid.centre(c[0], c[1], c[2]);
-            let d2 = (q.x as f32 - p[0]).powi(2) + (q.y as f32 - p[1]).powi(2) + (q.z as f32 - p[2]).powi(2);
+            let q = [centres[0][c[0]], centres[1][c[1]], centres[2][c[2]]];
+            let d2 = (q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2) + (q[2] - p[2]).powi(2);
             if d2 < dist2[n] && d2 <= reach2 {
                 dist2[n] = d2;
                 near[n] = near[idx];
-                heap.push(Reverse((d2.to_bits(), n)));
+                heap.push(d2, n as u32);
             }
         };
         if i > 0 {
@@ -1088,31 +1280,37 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
     // 4. Surface, then vertices onto the zero crossing (at most one voxel edge).
     let mut mesh = extract_surface(&occupancy, &MeshParams::smoothed(0))?;
     let limit = vs as f32;
+    let converged = (NEWTON_TOLERANCE_VOXELS * vs) as f32;
     let refined: usize = mesh
         .vertices
         .par_iter_mut()
-        .map_init(Vec::new, |buf, v| {
-            let start = *v;
-            let mut p = *v;
-            for _ in 0..4 {
-                let Some((d, g)) = sdf.eval(&p, buf) else { break };
-                let g2 = g[0] * g[0] + g[1] * g[1] + g[2] * g[2];
-                if g2 < 0.05 {
-                    break;
+        .map_init(
+            || (Vec::new(), Neighbourhood::new()),
+            |(buf, hood), v| {
+                let start = *v;
+                let mut p = *v;
+                // Every evaluation lies within `limit` of the start: one search serves them all.
+                sdf.gather(&start, sdf.max_m + limit, hood);
+                for _ in 0..4 {
+                    let Some((d, g)) = sdf.eval_near(&p, hood, buf) else { break };
+                    let g2 = g[0] * g[0] + g[1] * g[1] + g[2] * g[2];
+                    if g2 < 0.05 || d.abs() <= converged {
+                        break;
+                    }
+                    p = [0, 1, 2].map(|a| p[a] - d * g[a] / g2);
+                    if dist(&p, &start) > limit {
+                        break;
+                    }
                 }
-                p = [0, 1, 2].map(|a| p[a] - d * g[a] / g2);
-                if dist(&p, &start) > limit {
-                    break;
+                let shift = dist(&p, &start);
+                if shift > 0.0 && shift <= limit && p.iter().all(|x| x.is_finite()) {
+                    *v = p;
+                    1
+                } else {
+                    0
                 }
-            }
-            let shift = dist(&p, &start);
-            if shift > 0.0 && shift <= limit && p.iter().all(|x| x.is_finite()) {
-                *v = p;
-                1
-            } else {
-                0
-            }
-        })
+            },
+        )
         .sum();
     let stats = CloudMeshStats {
         band_voxels: band.len() as u64,
@@ -1182,6 +1380,92 @@ mod tests {
         assert!(buf.is_empty());
         KnnIndex::new(&pts[..2]).k_nearest(&[0.0; 3], 5, &mut buf);
         assert_eq!(buf.len(), 2);
+    }
+
+    #[test]
+    fn knn_is_exact_for_sparse_and_tied_points() {
+        // Two clusters 2 km apart with 1 mm cells: the cell array would be far too large, so the
+        // cells grow; the answers stay exact.
+        let mut rng = Rng(7);
+        let mut pts = sphere(500, 0.01, [0.0; 3], 0.0, &mut rng);
+        pts.extend(sphere(500, 0.01, [2000.0, 0.0, -5.0], 0.0, &mut rng));
+        pts.push([f32::NAN, 0.0, 0.0]);
+        let index = KnnIndex::with_cell(pts.clone(), 0.001);
+        let mut buf = Vec::new();
+        for q in [[0.0, 0.0, 0.011], [2000.0, 0.01, -5.0], [1000.0, 0.0, 0.0], [-3.0, 4.0, 1.0]] {
+            index.k_nearest(&q, 9, &mut buf);
+            let got: Vec<f32> = buf.iter().map(|e| e.0).collect();
+            assert_eq!(got, brute_knn(&pts[..1000], &q, 9), "{q:?}");
+        }
+        // Equal distances go to the lower index, whatever the cells.
+        let tied = vec![[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]];
+        for cell in [0.1, 0.7, 5.0] {
+            KnnIndex::with_cell(tied.clone(), cell).k_nearest(&[0.0; 3], 3, &mut buf);
+            assert_eq!(buf.iter().map(|e| e.1).collect::<Vec<_>>(), vec![0, 1, 2], "cell {cell}");
+            KnnIndex::with_cell(tied.clone(), cell).k_nearest_within(&[0.0; 3], 3, 0.9, &mut buf);
+            assert!(buf.is_empty());
+        }
+        KnnIndex::with_cell(Vec::new(), 0.1).k_nearest(&[0.0; 3], 3, &mut buf);
+        assert!(buf.is_empty());
+    }
+
+    #[test]
+    fn bucket_queue_pops_as_a_binary_heap() {
+        let mut rng = Rng(17);
+        let mut queue = BucketQueue::new(1e-4);
+        let mut heap = BinaryHeap::new();
+        let push = |d2: f32, i: u32, queue: &mut BucketQueue, heap: &mut BinaryHeap<Reverse<(u32, u32)>>| {
+            queue.push(d2, i);
+            heap.push(Reverse((d2.to_bits(), i)));
+        };
+        for i in 0..2000 {
+            // Squared distances within and beyond the buckets' span, some equal.
+            let d2 = if i % 10 == 0 { 5e-5 } else { 2e-4 * rng.next() };
+            push(d2, i, &mut queue, &mut heap);
+        }
+        let mut popped = 0;
+        while let Some(Reverse((bits, i))) = heap.pop() {
+            assert_eq!(queue.pop(), Some((f32::from_bits(bits), i)));
+            popped += 1;
+            // Later entries below the last one popped, as the distance transform makes them.
+            if popped % 7 == 0 && popped < 3000 {
+                let d2 = f32::from_bits(bits) * rng.next();
+                push(d2, 10_000 + popped, &mut queue, &mut heap);
+            }
+        }
+        assert_eq!(queue.pop(), None);
+        assert!(popped > 2200, "{popped}");
+    }
+
+    #[test]
+    fn sight_line_counts_match_marking_the_kept_points() {
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [0.02; 3] }, 20);
+        let mut rng = Rng(13);
+        let points: Vec<[f32; 3]> =
+            (0..300).map(|_| [0.02 * rng.next(), 0.02 * rng.next(), 0.01 * rng.next()]).collect();
+        let towards: Vec<[f32; 3]> = (0..300)
+            .map(|_| {
+                let d = Vector3::new(rng.next() - 0.5, rng.next() - 0.5, 1.0).normalize();
+                [d.x, d.y, d.z]
+            })
+            .collect();
+        let keep: Vec<bool> = (0..300).map(|i| i % 7 != 3).collect();
+        let pick = |v: &[[f32; 3]], want: bool| -> Vec<[f32; 3]> {
+            v.iter().zip(&keep).filter(|(_, &k)| k == want).map(|(x, _)| *x).collect()
+        };
+        let mut expected = vec![false; grid.len()];
+        mark_lines_of_sight(&grid, &pick(&points, true), &pick(&towards, true), 0.002, &mut expected).expect("sizes");
+        // Added in two batches, the dropped points' lines taken out again.
+        let mut counts = SightLineCounts::new(&grid, 0.002);
+        counts.add(&points[..100], &towards[..100]).expect("sizes");
+        counts.add(&points[100..], &towards[100..]).expect("sizes");
+        counts.remove(&pick(&points, false), &pick(&towards, false)).expect("sizes");
+        let mut free = vec![false; grid.len()];
+        counts.mark_free(&mut free).expect("size");
+        assert_eq!(free, expected);
+        assert!(free.iter().filter(|&&f| f).count() > 100);
+        assert!(counts.add(&points, &towards[1..]).is_err());
+        assert!(counts.mark_free(&mut free[1..]).is_err());
     }
 
     #[test]

@@ -8,7 +8,9 @@
 //! a closed mesh made from the oriented cloud ([`crate::pipeline::cloud`]). Where the lasers left the
 //! surface unsampled (a part never lit while in view), the mesh is closed by the air the camera saw:
 //! voxels outside the visual hull of evenly spaced laser-off silhouettes, or crossed by the line from
-//! a point to the camera that saw it or to the laser that lit it.
+//! a point to the camera that saw it or to the laser that lit it. Both are gathered as the positions
+//! arrive (the hull carved one silhouette at a time, the lines counted per voxel so that those of the
+//! points later removed as outliers can be taken out), so little of that work is left after the turn.
 //!
 //! Outputs: `cloud.ply` (points with normals and colours, object frame, metres), `model.ply` /
 //! `model.stl` / `model.obj` (the mesh, vertex colours from the nearest cloud point, or for a
@@ -32,11 +34,11 @@ use super::{frame_name, stored_frame};
 use crate::acquisition::{self, LaserView};
 use crate::config::{LaserScanConfig, Method, RigConfig, ScanPlan};
 use crate::geometry::{turntable_rotation, Aabb, CameraModel, VoxelGrid};
-use crate::pipeline::cloud::{mark_lines_of_sight, solid_and_mesh_from_cloud_with_free_space};
+use crate::pipeline::cloud::{solid_and_mesh_from_cloud_with_free_space, SightLineCounts};
 use crate::pipeline::laser::{detect_stripe, triangulate_peaks, LaserError, Plane, StripeParams};
 use crate::pipeline::{
-    carve_dense, extract_silhouette, CloudError, CloudMeshParams, CloudMeshStats, KnnIndex, Mask, PointCloud,
-    SilhouetteParams, View,
+    extract_silhouette, CarveError, CloudError, CloudMeshParams, CloudMeshStats, KnnIndex, Mask, PointCloud,
+    SilhouetteParams, SpaceCarver,
 };
 use crate::scan::flow::{Finish, FrameDir, Outcome, PositionView, ScanFlow, Sequence, ViewRecord};
 use crate::scan::report::{MethodDetails, Timings};
@@ -117,14 +119,35 @@ pub struct LaserSummary {
     pub normals_s: f64,
 }
 
-/// Points of the lasers so far (object frame) with their colours and the camera centre that saw them.
+/// Points of the lasers so far (object frame) with their colours and the unit directions from each
+/// point to the camera centre that saw it and to the exit point of the laser whose light made it.
 #[derive(Debug, Default)]
 struct Accumulated {
     points: Vec<[f32; 3]>,
     colors: Vec<[u8; 3]>,
-    viewpoints: Vec<[f32; 3]>,
-    /// The exit point of the laser whose light made each point.
-    light_sources: Vec<[f32; 3]>,
+    towards_camera: Vec<[f32; 3]>,
+    towards_laser: Vec<[f32; 3]>,
+}
+
+/// The unit vector from `p` towards `e` (object frame), `+z` if they coincide.
+fn towards(p: &[f32; 3], e: &[f32; 3]) -> [f32; 3] {
+    let d = Vector3::from(*e) - Vector3::from(*p);
+    let d = d.try_normalize(0.0).unwrap_or(Vector3::z());
+    [d.x, d.y, d.z]
+}
+
+/// The air the camera saw, gathered as the views arrive (see the module docs): the voxels outside
+/// the silhouettes' visual hull and the lines of sight of every point so far. At the end the lines
+/// of the points dropped as outliers are taken out, which leaves what marking the lines of the kept
+/// points would give.
+#[derive(Debug)]
+struct FreeSpace {
+    /// The visual hull of the silhouettes so far, carved one silhouette at a time (the same voxels
+    /// as carving them all at once), or why a silhouette could not be carved: the visual hull is
+    /// then left out.
+    hull: Result<SpaceCarver, CarveError>,
+    /// Lines from each point to its camera and to its laser.
+    sight: SightLineCounts,
 }
 
 fn inside(b: &Aabb, p: &Vector3<f64>) -> bool {
@@ -165,6 +188,9 @@ pub struct LaserFlow {
     per_laser: Vec<(u64, u64)>,
     triangulate_s: f64,
     silhouettes: Vec<(CameraModel, Mask)>,
+    free: FreeSpace,
+    /// Seconds spent carving silhouettes and marking lines of sight as the views arrived.
+    free_space_s: f64,
     views: usize,
     timings: Timings,
 }
@@ -195,11 +221,16 @@ impl LaserFlow {
             half_window_px: lc.half_window_px,
         };
         let bbox = recon.bbox();
+        let grid = VoxelGrid::from_resolution(&bbox, recon.resolution);
+        // The lines of sight start past the band the meshing evaluates around each point (its own
+        // noise).
+        let skip_m = (CloudMeshParams::default().band_voxels + 1.0) * grid.voxel_size;
+        let free = FreeSpace { hull: SpaceCarver::new(grid), sight: SightLineCounts::new(&grid, skip_m) };
         Ok(LaserFlow {
             plan: config.scan.clone(),
             settings: lc.clone(),
             camera: config.camera.model(),
-            grid: VoxelGrid::from_resolution(&bbox, recon.resolution),
+            grid,
             bbox,
             per_laser: vec![(0, 0); lasers.len()],
             lasers,
@@ -212,6 +243,8 @@ impl LaserFlow {
             acc: Accumulated::default(),
             triangulate_s: 0.0,
             silhouettes: Vec::new(),
+            free,
+            free_space_s: 0.0,
             views: 0,
             timings: Timings::default(),
         })
@@ -277,21 +310,34 @@ impl ScanFlow for LaserFlow {
                 }
                 let (u, v) = ((pk.u.floor() as u32).min(view.off.image.width() - 1), pk.v);
                 let c = view.off.image.get_pixel(u, v).0;
-                self.acc.points.push([q.x as f32, q.y as f32, q.z as f32]);
+                let q = [q.x as f32, q.y as f32, q.z as f32];
+                self.acc.points.push(q);
                 self.acc.colors.push(c);
-                self.acc.viewpoints.push(eye);
-                self.acc.light_sources.push(source);
+                self.acc.towards_camera.push(towards(&q, &eye));
+                self.acc.towards_laser.push(towards(&q, &source));
                 self.per_laser[k].1 += 1;
             }
         }
         self.triangulate_s += t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let (new, acc, sight) = (before.., &self.acc, &mut self.free.sight);
+        let cloud_err = |e| err(LaserScanError::Cloud(e));
+        sight.add(&acc.points[new.clone()], &acc.towards_camera[new.clone()]).map_err(cloud_err)?;
+        sight.add(&acc.points[new.clone()], &acc.towards_laser[new]).map_err(cloud_err)?;
+        self.free_space_s += t.elapsed().as_secs_f64();
         if view.position % self.stride == 0 {
             let t = Instant::now();
-            self.silhouettes.push((
-                camera.for_turntable_angle(view.angle_deg),
-                extract_silhouette(&view.off.image, &self.sil_params),
-            ));
+            let silhouette =
+                (camera.for_turntable_angle(view.angle_deg), extract_silhouette(&view.off.image, &self.sil_params));
             self.timings.silhouette += t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            if let Ok(carver) = &mut self.free.hull {
+                if let Err(e) = carver.add_view(&silhouette.0, &silhouette.1) {
+                    self.free.hull = Err(e);
+                }
+            }
+            self.free_space_s += t.elapsed().as_secs_f64();
+            self.silhouettes.push(silhouette);
         }
         self.views += 1;
         let added = self.acc.points.len() - before;
@@ -309,59 +355,45 @@ impl ScanFlow for LaserFlow {
         let lc = &self.settings;
         let grid = self.grid;
         timings.silhouette += self.timings.silhouette;
-        timings.carve += self.triangulate_s;
+        timings.carve += self.triangulate_s + self.free_space_s;
         let triangulate_s = self.triangulate_s;
         events(ScanEvent::Stage("point cloud"));
         let t = Instant::now();
         let cloud_err = |e| err(LaserScanError::Cloud(e));
         let merged_points = self.acc.points.len();
-        let Accumulated { points, colors, viewpoints, light_sources } = self.acc;
+        let Accumulated { points, colors, towards_camera, towards_laser } = self.acc;
         // Until the real normals are estimated, each point's "normal" is the unit vector towards the
         // camera that saw it: thinning averages it with the rest of its cube, and it then orients the
         // estimated normal.
-        let towards = |sources: &[[f32; 3]]| -> Vec<[f32; 3]> {
-            points
-                .iter()
-                .zip(sources)
-                .map(|(p, e)| {
-                    let d = Vector3::from(*e) - Vector3::from(*p);
-                    let d = d.try_normalize(0.0).unwrap_or(Vector3::z());
-                    [d.x, d.y, d.z]
-                })
-                .collect()
-        };
-        let towards_camera = towards(&viewpoints);
-        let mut towards_laser = towards(&light_sources);
         let mut cloud = PointCloud::from_parts(points, Some(towards_camera), Some(colors)).map_err(cloud_err)?;
         let keep = cloud.inlier_mask(lc.neighbours, lc.outlier_std_ratio).map_err(cloud_err)?;
-        let merged = cloud.len();
-        cloud.retain_mask(&keep);
-        let outliers_removed = merged - cloud.len();
-        let mut kept = keep.iter();
-        towards_laser.retain(|_| kept.next().copied().unwrap_or(false));
         // Air seen by the camera: outside the visual hull of the kept silhouettes, or on a line of sight
         // from a point to the camera or to the laser that lit it (the lasers' light planes hold the
         // turntable axis, so their light sweeps the air of a concavity that the oblique lines of sight
-        // to the camera miss). The meshing uses it where the lasers left the surface unsampled.
-        let carving_views: Vec<View<'_>> =
-            self.silhouettes.iter().map(|(camera, mask)| View { camera: *camera, mask }).collect();
-        let mut free: Vec<bool> = match carve_dense(&grid, &carving_views) {
-            Ok(hull) => (0..grid.len())
-                .map(|idx| {
-                    let d = grid.dims;
-                    !hull.get(idx % d[0], (idx / d[0]) % d[1], idx / (d[0] * d[1]))
-                })
-                .collect(),
+        // to the camera miss). The meshing uses it where the lasers left the surface unsampled. Both
+        // were gathered as the views arrived; the outliers' lines of sight go now.
+        let FreeSpace { hull, mut sight } = self.free;
+        let mut free: Vec<bool> = match hull {
+            Ok(carver) => {
+                let hull = carver.into_occupancy();
+                let d = grid.dims;
+                (0..grid.len()).map(|idx| !hull.get(idx % d[0], (idx / d[0]) % d[1], idx / (d[0] * d[1]))).collect()
+            }
             Err(e) => {
                 tracing::warn!(error = %e, "no visual hull for the laser meshing; lines of sight only");
                 vec![false; grid.len()]
             }
         };
-        if let Some(towards) = cloud.normals() {
-            let skip_m = (CloudMeshParams::default().band_voxels + 1.0) * grid.voxel_size;
-            mark_lines_of_sight(&grid, cloud.points(), towards, skip_m, &mut free).map_err(cloud_err)?;
-            mark_lines_of_sight(&grid, cloud.points(), &towards_laser, skip_m, &mut free).map_err(cloud_err)?;
-        }
+        let dropped =
+            |v: &[[f32; 3]]| -> Vec<[f32; 3]> { v.iter().zip(&keep).filter(|(_, &k)| !k).map(|(x, _)| *x).collect() };
+        let outliers = dropped(cloud.points());
+        sight.remove(&outliers, &dropped(cloud.normals().unwrap_or(&[]))).map_err(cloud_err)?;
+        sight.remove(&outliers, &dropped(&towards_laser)).map_err(cloud_err)?;
+        sight.mark_free(&mut free).map_err(cloud_err)?;
+        drop(sight);
+        let merged = cloud.len();
+        cloud.retain_mask(&keep);
+        let outliers_removed = merged - cloud.len();
         if lc.thin_voxels > 0.0 {
             cloud = cloud.voxel_downsample(lc.thin_voxels * grid.voxel_size).map_err(cloud_err)?;
         }
@@ -404,7 +436,6 @@ impl ScanFlow for LaserFlow {
             mesh.colors = Some(colors);
         }
         timings.mesh = t.elapsed().as_secs_f64();
-        drop(carving_views);
 
         let laser = LaserSummary {
             lasers: self
