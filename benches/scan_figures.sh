@@ -28,7 +28,14 @@ measure() { # rig-file label settings
     printf '%s | %s | %d | %.3f | %.2f\n' "$2" "$3" $((kb / 1024)) "$after" "$total"
   else
     # The scan's own error (for a grid above the memory budget: the estimate), not time's exit line.
-    echo "$2 | $3 | failed: $(grep -v -e $'^\t' -e '^Command exited' "$log" | tail -1 | sed 's/^ *//')"
+    local err
+    err=$(grep -v -e $'^\t' -e '^Command exited' "$log" | tail -1 | sed 's/^ *//')
+    if [[ $err =~ needs\ about\ ([0-9]+)\ MB.*memory\ budget\ of\ ([0-9]+)\ MB ]]; then
+      err="refused: needs about ${BASH_REMATCH[1]} MB, above the memory budget of ${BASH_REMATCH[2]} MB (\`reconstruction.memory_budget_mb\`)"
+    else
+      err="failed: $err"
+    fi
+    echo "$2 | $3 | $err"
   fi
   rm -rf "$tmp/out"
 }
