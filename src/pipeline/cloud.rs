@@ -771,33 +771,8 @@ pub struct CloudMeshStats {
     pub refined_vertices: u64,
 }
 
-/// Mark in `free` (one entry per voxel of `grid`, see [`VoxelGrid::index`]) the voxels crossed by the
-/// line from each point towards a viewpoint whose line to the point is known to be clear (the camera
-/// that saw it, or the light source that lit it): `towards[i]` is the unit direction from
-/// `points[i]` to that viewpoint (the cloud's frame). The first `skip_m`
-/// metres next to the point are left alone (the point's own noise); the ray is followed, in steps of
-/// half a voxel edge, until it leaves the grid, so the viewpoints must lie outside the grid. Non-finite points or directions are skipped.
-pub fn mark_lines_of_sight(
-    grid: &VoxelGrid,
-    points: &[[f32; 3]],
-    towards: &[[f32; 3]],
-    skip_m: f64,
-    free: &mut [bool],
-) -> Result<(), CloudError> {
-    if free.len() != grid.len() {
-        return Err(CloudError::FreeSpaceSize { given: free.len(), expected: grid.len() });
-    }
-    if towards.len() != points.len() {
-        return Err(CloudError::AttributeLength { attribute: "normals", len: towards.len(), points: points.len() });
-    }
-    for (p, d) in points.iter().zip(towards) {
-        for_each_voxel_on_sight_line(grid, p, d, skip_m, |idx| free[idx] = true);
-    }
-    Ok(())
-}
-
 /// Call `visit` with the index of each voxel of `grid` the line from `p` along the unit direction
-/// `d` crosses (see [`mark_lines_of_sight`]; metres, the grid's frame), sampled every half voxel edge
+/// `d` crosses (see [`SightLineCounts`]; metres, the grid's frame), sampled every half voxel edge
 /// from `skip_m` metres on until it leaves the grid; a voxel may come more than once. Nothing for a
 /// non-finite point or direction.
 fn for_each_voxel_on_sight_line(
@@ -830,10 +805,14 @@ fn for_each_voxel_on_sight_line(
     }
 }
 
-/// Lines of sight (see [`mark_lines_of_sight`]) gathered as the points arrive: per voxel of the
-/// grid, how many lines cross it, so the lines of points later found to be outliers can be taken
-/// out again. [`SightLineCounts::mark_free`] then gives what [`mark_lines_of_sight`] would have marked
-/// for the points that remain.
+/// Lines of sight gathered as the points arrive: the line from each point towards a viewpoint whose
+/// line to the point is known to be clear (the camera that saw it, or the light source that lit it),
+/// given as the unit direction from the point to that viewpoint (the grid's frame). The first
+/// `skip_m` metres next to the point are left alone (the point's own noise); the line is followed,
+/// in steps of half a voxel edge, until it leaves the grid, so the viewpoints must lie outside the
+/// grid; non-finite points or directions add nothing. Per voxel, how many lines cross it is kept, so
+/// the lines of points later found to be outliers can be taken out again;
+/// [`SightLineCounts::mark_free`] then marks the voxels the remaining lines cross.
 #[derive(Debug, Clone)]
 pub struct SightLineCounts {
     grid: VoxelGrid,
@@ -843,8 +822,7 @@ pub struct SightLineCounts {
 }
 
 impl SightLineCounts {
-    /// No lines yet, on `grid`; each line skips its first `skip_m` metres (see
-    /// [`mark_lines_of_sight`]).
+    /// No lines yet, on `grid`; each line skips its first `skip_m` metres.
     pub fn new(grid: &VoxelGrid, skip_m: f64) -> SightLineCounts {
         SightLineCounts { grid: *grid, skip_m, counts: vec![0; grid.len()] }
     }
@@ -1437,6 +1415,19 @@ mod tests {
         assert!(popped > 2200, "{popped}");
     }
 
+    /// The definition [`SightLineCounts`] must match: every voxel each line crosses, marked directly.
+    fn mark_lines_of_sight(
+        grid: &VoxelGrid,
+        points: &[[f32; 3]],
+        towards: &[[f32; 3]],
+        skip_m: f64,
+        free: &mut [bool],
+    ) {
+        for (p, d) in points.iter().zip(towards) {
+            for_each_voxel_on_sight_line(grid, p, d, skip_m, |idx| free[idx] = true);
+        }
+    }
+
     #[test]
     fn sight_line_counts_match_marking_the_kept_points() {
         let grid = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [0.02; 3] }, 20);
@@ -1454,7 +1445,7 @@ mod tests {
             v.iter().zip(&keep).filter(|(_, &k)| k == want).map(|(x, _)| *x).collect()
         };
         let mut expected = vec![false; grid.len()];
-        mark_lines_of_sight(&grid, &pick(&points, true), &pick(&towards, true), 0.002, &mut expected).expect("sizes");
+        mark_lines_of_sight(&grid, &pick(&points, true), &pick(&towards, true), 0.002, &mut expected);
         // Added in two batches, the dropped points' lines taken out again.
         let mut counts = SightLineCounts::new(&grid, 0.002);
         counts.add(&points[..100], &towards[..100]).expect("sizes");
@@ -1645,14 +1636,17 @@ mod tests {
         let grid = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [0.01; 3] }, 10);
         let mut free = vec![false; grid.len()];
         // A point in voxel (5, 5, 2) seen from straight above; the first 2 mm are skipped.
-        mark_lines_of_sight(&grid, &[[0.0055, 0.0055, 0.0025]], &[[0.0, 0.0, 1.0]], 0.002, &mut free).expect("sizes");
+        let mut lines = SightLineCounts::new(&grid, 0.002);
+        lines.add(&[[0.0055, 0.0055, 0.0025]], &[[0.0, 0.0, 1.0]]).expect("sizes");
+        lines.mark_free(&mut free).expect("size");
         let marked: Vec<usize> = (0..10).filter(|&k| free[grid.index(5, 5, k)]).collect();
         assert_eq!(marked, vec![4, 5, 6, 7, 8, 9]);
         assert_eq!(free.iter().filter(|&&f| f).count(), 6);
-        // Non-finite input is skipped; mismatched lengths are errors.
-        mark_lines_of_sight(&grid, &[[f32::NAN; 3]], &[[0.0, 0.0, 1.0]], 0.0, &mut free).expect("sizes");
+        // Non-finite input adds nothing; mismatched lengths are errors.
+        lines.add(&[[f32::NAN; 3]], &[[0.0, 0.0, 1.0]]).expect("sizes");
+        lines.mark_free(&mut free).expect("size");
         assert_eq!(free.iter().filter(|&&f| f).count(), 6);
-        assert!(mark_lines_of_sight(&grid, &[[0.0; 3]], &[], 0.0, &mut free).is_err());
-        assert!(mark_lines_of_sight(&grid, &[], &[], 0.0, &mut free[1..]).is_err());
+        assert!(lines.add(&[[0.0; 3]], &[]).is_err());
+        assert!(lines.mark_free(&mut free[1..]).is_err());
     }
 }
