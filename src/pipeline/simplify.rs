@@ -598,7 +598,7 @@ pub fn simplify_in(mesh: &TriangleMesh, params: &SimplifyParams, regions: usize)
                 let (sub, sub_state, sub_locked) = split.region(&original, &state, r);
                 let mut work = Work::new(&sub, sub_state, sub_locked, bound2);
                 let mut sub_stats = SimplifyStats::default();
-                work.run(&mut queue_all(&work, params.max_error_m), &mut sub_stats);
+                work.run(&mut queue_edges(&work, params.max_error_m, |_, _| true), &mut sub_stats);
                 (work.into_state(), sub_stats)
             })
             .collect();
@@ -611,16 +611,8 @@ pub fn simplify_in(mesh: &TriangleMesh, params: &SimplifyParams, regions: usize)
     }
     // The whole mesh, nothing locked: everything when it was not split, else the edges at the cuts.
     let mut work = Work::new(&original, state, vec![false; n], bound2);
-    let mut queue = CollapseQueue::new(params.max_error_m);
-    for (t, _) in work.tris.iter().zip(&work.alive_tri).filter(|(_, &a)| a) {
-        for e in 0..3 {
-            let (a, b) = (t[e], t[(e + 1) % 3]);
-            if a < b && (regions == 1 || locked[a as usize] || locked[b as usize]) {
-                work.push(&mut queue, a, b);
-            }
-        }
-    }
-    work.run(&mut queue, &mut stats);
+    let at_cuts = |a: u32, b: u32| regions == 1 || locked[a as usize] || locked[b as usize];
+    work.run(&mut queue_edges(&work, params.max_error_m, at_cuts), &mut stats);
     // Compact.
     let mut remap = vec![NONE; n];
     let mut out = TriangleMesh::default();
@@ -642,13 +634,14 @@ pub fn simplify_in(mesh: &TriangleMesh, params: &SimplifyParams, regions: usize)
     (out, stats)
 }
 
-/// Every edge of the live triangles queued (those with a locked end are not).
-fn queue_all(work: &Work<'_>, max_error_m: f64) -> CollapseQueue {
+/// The edges `a < b` of the live triangles that `wanted` accepts, queued (those with a locked end
+/// are not).
+fn queue_edges(work: &Work<'_>, max_error_m: f64, wanted: impl Fn(u32, u32) -> bool) -> CollapseQueue {
     let mut queue = CollapseQueue::new(max_error_m);
     for (t, _) in work.tris.iter().zip(&work.alive_tri).filter(|(_, &a)| a) {
         for e in 0..3 {
             let (a, b) = (t[e], t[(e + 1) % 3]);
-            if a < b {
+            if a < b && wanted(a, b) {
                 work.push(&mut queue, a, b);
             }
         }

@@ -215,7 +215,7 @@ impl OutputDir {
         // One watertight surface: parts floating apart from the main one and internal cavities go;
         // then it is simplified within the error bound, checked by its Hausdorff distance. The
         // solid's re-projection into the silhouettes (evaluated below) does not depend on the mesh:
-        // it is measured meanwhile, on the cores the mostly serial simplification leaves idle.
+        // it is measured meanwhile, the two sharing the thread pool.
         let t = Instant::now();
         let views: Vec<View<'_>> = silhouettes.iter().map(|(camera, mask)| View { camera: *camera, mask }).collect();
         let ((mesh, mesh_cleanup, mesh_simplification), reprojection) = rayon::join(

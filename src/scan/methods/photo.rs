@@ -78,10 +78,16 @@ impl PhotoOutputs {
         out
     }
 
+    /// The colours of a result's mesh vertices and voxels, from one [`PhotoOutputs::colour_grid`]:
+    /// see [`PhotoOutputs::mesh_colours`] and [`PhotoOutputs::voxel_colours`].
+    pub fn colours(&self, mesh: &TriangleMesh, occupancy: &Occupancy) -> (Vec<[u8; 3]>, Vec<[u8; 3]>) {
+        let table = self.colour_grid();
+        (self.mesh_colours(&table, mesh), self.voxel_colours(&table, occupancy))
+    }
+
     /// Colours of the occupied voxels of `occupancy` in `for_each_occupied` order: surface voxels
     /// take their colour, interior and unseen voxels [`UNSEEN_COLOUR`].
-    pub fn voxel_colours(&self, occupancy: &Occupancy) -> Vec<[u8; 3]> {
-        let table = self.colour_grid();
+    fn voxel_colours(&self, table: &[u32], occupancy: &Occupancy) -> Vec<[u8; 3]> {
         let d = self.grid.dims;
         let mut out = Vec::new();
         occupancy.for_each_occupied(|i, j, k| {
@@ -94,8 +100,7 @@ impl PhotoOutputs {
     /// Vertex colours of a mesh of the result: each vertex takes the colour of the nearest seen
     /// surface voxel within two voxels ([`UNSEEN_COLOUR`] when there is none); ties go to the
     /// first in z, y, x order of the offsets.
-    pub fn mesh_colours(&self, mesh: &TriangleMesh) -> Vec<[u8; 3]> {
-        let table = self.colour_grid();
+    fn mesh_colours(&self, table: &[u32], mesh: &TriangleMesh) -> Vec<[u8; 3]> {
         let g = &self.grid;
         let dims = g.dims.map(|d| d as i64);
         let s = g.voxel_size as f32;

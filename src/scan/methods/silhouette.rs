@@ -190,9 +190,10 @@ pub(crate) fn outcome_from_hull(
     events(ScanEvent::Stage("mesh"));
     let t = Instant::now();
     let mut mesh = extract_surface(&solid, &MeshParams::smoothed(smooth_radius)).map_err(ScanError::Mesh)?;
-    mesh.colors = Some(outputs.mesh_colours(&mesh));
+    let (mesh_colours, voxel_colours) = outputs.colours(&mesh, &solid);
+    mesh.colors = Some(mesh_colours);
     timings.mesh = t.elapsed().as_secs_f64();
-    let voxel_colours = Some(outputs.voxel_colours(&solid));
+    let voxel_colours = Some(voxel_colours);
     Ok(Outcome {
         views: count,
         visual_hull: Some((carver.into_occupancy(), outputs.visual_hull.clone())),
