@@ -3,7 +3,8 @@
 //! intrinsics, poses, voxel size and truncation), laser stripe extraction + triangulation at
 //! 640x480 and 1280x960 against a numpy implementation of the same per-row peak
 //! (`benches/laser_numpy_peer.py`, same PNG frames), structured light decode + triangulate + merge
-//! of one 1280x1024 view (Gray code, 4-step phase shift), and shadow carving at 128³ with 24
+//! of one 1280x1024 view (Gray code, 4-step phase shift; merge: the valid points with their normals
+//! and colours gathered into a cloud, as a scan does per view), and shadow carving at 128³ with 24
 //! positions x 4 lights of a bowl whose pit only shadows can carve, against the implementation it
 //! replaced (`benches/shadow_baseline.rs`, same result checked). Inputs are synthetic and analytic
 //! (a sphere, a plane, a bowl); the peers read the
@@ -373,7 +374,7 @@ fn structured_light() {
         triangulator.triangulate_map_into(&pm, true, None, &tri, &mut range).expect("triangulates");
         stages.lap(1);
         stages.passes.push(triangulator.last_pass_seconds());
-        let cloud = PointCloud::from_points(range.valid_points().map(|p| p.0).collect());
+        let cloud = range.valid_cloud();
         points = cloud.len();
         merged = PointCloud::new();
         merged.extend(cloud);
@@ -433,7 +434,7 @@ fn structured_light() {
         triangulator.triangulate_into(&coords, None, &tri, &mut range).expect("triangulates");
         stages.lap(1);
         stages.passes.push(triangulator.last_pass_seconds());
-        let cloud = PointCloud::from_points(range.valid_points().map(|p| p.0).collect());
+        let cloud = range.valid_cloud();
         points = cloud.len();
         merged = PointCloud::new();
         merged.extend(cloud);

@@ -22,6 +22,7 @@ use rayon::prelude::*;
 
 use super::mesh::TriangleMesh;
 use super::occupancy::Occupancy;
+use super::simd::{has_avx2, run_simd};
 use crate::geometry::{CameraModel, VoxelGrid};
 
 /// Parameters of the fusion.
@@ -210,13 +211,11 @@ impl Tsdf {
                 || (RowBuffers::new(nx), Vec::new()),
                 |(buf, bricks), (kb, ((values, weights), pending))| {
                     let slab = Slab { kb, values, weights, pending };
-                    #[cfg(target_arch = "x86_64")]
-                    if avx2 {
-                        // SAFETY: the CPU supports AVX2 (checked at run time by `has_avx2`).
-                        return unsafe { slabs.fuse_avx2(slab, buf, bricks) };
-                    }
-                    let _ = avx2;
-                    slabs.fuse(slab, buf, bricks)
+                    run_simd(
+                        avx2,
+                        #[inline(always)]
+                        || slabs.fuse(slab, buf, bricks),
+                    )
                 },
             )
             .reduce(IntegrateStats::default, |a, b| IntegrateStats {
@@ -326,18 +325,6 @@ enum Brick {
     Mixed,
 }
 
-/// True when the CPU runs AVX2 (checked at run time: builds stay generic).
-fn has_avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx2")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
-}
-
 /// One slab of `BRICK` slices of constant `z` (fewer in the last): its values, weights and pending
 /// free-space samples.
 #[derive(Debug)]
@@ -367,18 +354,6 @@ struct SlabFusion<'a> {
 }
 
 impl SlabFusion<'_> {
-    /// [`SlabFusion::fuse`] compiled for 256-bit vectors. Only AVX2 is enabled, not FMA: the compiler
-    /// never fuses a multiply and an add on its own, so both builds round every operation the same and
-    /// a volume does not depend on the CPU that fused it.
-    ///
-    /// # Safety
-    /// The CPU must support AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn fuse_avx2(&self, slab: Slab<'_>, buf: &mut RowBuffers, bricks: &mut Vec<Brick>) -> IntegrateStats {
-        self.fuse(slab, buf, bricks)
-    }
-
     /// Fuse one slab. A brick given the free-space sample only counts it as pending; a brick done
     /// voxel by voxel first folds in what it has pending.
     #[inline(always)]

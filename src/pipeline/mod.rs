@@ -30,6 +30,7 @@ pub mod photo_consistency;
 pub mod shadow_carving;
 pub mod shadows;
 pub mod silhouette;
+pub(crate) mod simd;
 pub mod simplify;
 pub mod space_carving;
 pub mod structured_light;

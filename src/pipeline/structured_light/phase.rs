@@ -32,6 +32,7 @@
 use rayon::prelude::*;
 
 use super::coords::ProjectorCoords;
+use crate::pipeline::simd::{has_avx2, run_simd};
 
 /// Which projector axis a block of patterns codes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -425,68 +426,75 @@ impl PhaseShiftPatterns {
         let last = periods.len() - 1;
         let inv = 1.0 / steps as f32;
         let (p0, half) = (periods[0] as f32, periods[0] as f32 / 2.0);
+        let avx2 = has_avx2();
         out.par_chunks_mut(cap).enumerate().for_each(|(band, out_band)| {
-            let base = band * cap;
-            for (t, out) in out_band.chunks_mut(TILE).enumerate() {
-                let m = out.len();
-                let at = base + t * TILE;
-                // Loops over whole tiles (the tail tile's unused lanes compute on zeros) have a fixed
-                // trip count and no bounds checks, so they vectorise.
-                let (mut ok, mut o, mut w) = ([true; TILE], [0f32; TILE], [0f32; TILE]);
-                // Coarse to fine: the coarsest phase is absolute, each finer one snaps to it.
-                for (f, &period) in periods.iter().enumerate().rev() {
-                    let (mut s, mut c, mut sum) = ([0f32; TILE], [0f32; TILE], [0f32; TILE]);
-                    for k in 0..steps {
-                        let img = &images[f * steps + k][at..at + m];
-                        let (sk, ck) = (sin[k], cos[k]);
-                        for (i, &v) in img.iter().enumerate() {
-                            let v = f32::from(v);
-                            s[i] += v * sk;
-                            c[i] += v * ck;
-                            sum[i] += v;
-                        }
-                    }
-                    let p = period as f32;
-                    let scale = p / std::f32::consts::TAU;
-                    for i in 0..TILE {
-                        ok[i] &= s[i] * s[i] + c[i] * c[i] >= min_b2;
-                        let a = fast_atan2(s[i], c[i]) * scale;
-                        w[i] = if a < 0.0 { a + p } else { a };
-                    }
-                    if f < last {
-                        for i in 0..TILE {
-                            o[i] = w[i] + p * nearest((o[i] - w[i]) / p);
-                        }
-                    } else if self.gray {
-                        o = w; // unwrapped by the Gray bits below
-                    } else {
-                        // Absolute: the unused part of the period is centred around the axis.
-                        let wrap = len + (p - len) / 2.0;
-                        for i in 0..TILE {
-                            o[i] = if w[i] > wrap { w[i] - p } else { w[i] };
-                        }
-                    }
-                    if f == 0 && self.gray {
-                        // The fringe mean `A = ΣI / N` is each pixel's own bit threshold.
-                        let mut code = [0u32; TILE];
-                        for b in 0..bits {
-                            let img = &images[fringes + b][at..at + m];
-                            for (i, &v) in img.iter().enumerate() {
-                                code[i] = (code[i] << 1) | u32::from(f32::from(v) > sum[i] * inv);
+            run_simd(
+                avx2,
+                #[inline(always)]
+                || {
+                    let base = band * cap;
+                    for (t, out) in out_band.chunks_mut(TILE).enumerate() {
+                        let m = out.len();
+                        let at = base + t * TILE;
+                        // Loops over whole tiles (the tail tile's unused lanes compute on zeros) have a fixed
+                        // trip count and no bounds checks, so they vectorise.
+                        let (mut ok, mut o, mut w) = ([true; TILE], [0f32; TILE], [0f32; TILE]);
+                        // Coarse to fine: the coarsest phase is absolute, each finer one snaps to it.
+                        for (f, &period) in periods.iter().enumerate().rev() {
+                            let (mut s, mut c, mut sum) = ([0f32; TILE], [0f32; TILE], [0f32; TILE]);
+                            for k in 0..steps {
+                                let img = &images[f * steps + k][at..at + m];
+                                let (sk, ck) = (sin[k], cos[k]);
+                                for (i, &v) in img.iter().enumerate() {
+                                    let v = f32::from(v);
+                                    s[i] += v * sk;
+                                    c[i] += v * ck;
+                                    sum[i] += v;
+                                }
+                            }
+                            let p = period as f32;
+                            let scale = p / std::f32::consts::TAU;
+                            for i in 0..TILE {
+                                ok[i] &= s[i] * s[i] + c[i] * c[i] >= min_b2;
+                                let a = fast_atan2(s[i], c[i]) * scale;
+                                w[i] = if a < 0.0 { a + p } else { a };
+                            }
+                            if f < last {
+                                for i in 0..TILE {
+                                    o[i] = w[i] + p * nearest((o[i] - w[i]) / p);
+                                }
+                            } else if self.gray {
+                                o = w; // unwrapped by the Gray bits below
+                            } else {
+                                // Absolute: the unused part of the period is centred around the axis.
+                                let wrap = len + (p - len) / 2.0;
+                                for i in 0..TILE {
+                                    o[i] = if w[i] > wrap { w[i] - p } else { w[i] };
+                                }
+                            }
+                            if f == 0 && self.gray {
+                                // The fringe mean `A = ΣI / N` is each pixel's own bit threshold.
+                                let mut code = [0u32; TILE];
+                                for b in 0..bits {
+                                    let img = &images[fringes + b][at..at + m];
+                                    for (i, &v) in img.iter().enumerate() {
+                                        code[i] = (code[i] << 1) | u32::from(f32::from(v) > sum[i] * inv);
+                                    }
+                                }
+                                for i in 0..TILE {
+                                    let centre = (gray_to_index(code[i]) as f32 + 0.5) * half - 0.5;
+                                    o[i] += p0 * nearest((centre - o[i]) / p0);
+                                }
                             }
                         }
-                        for i in 0..TILE {
-                            let centre = (gray_to_index(code[i]) as f32 + 0.5) * half - 0.5;
-                            o[i] += p0 * nearest((centre - o[i]) / p0);
+                        for (i, out) in out.iter_mut().enumerate() {
+                            // Index coordinates to continuous ones (pixel centres at `x + 0.5`).
+                            let v = o[i];
+                            *out = if !ok[i] || v < -0.5 || v > len - 0.5 { f32::NAN } else { v + 0.5 };
                         }
                     }
-                }
-                for (i, out) in out.iter_mut().enumerate() {
-                    // Index coordinates to continuous ones (pixel centres at `x + 0.5`).
-                    let v = o[i];
-                    *out = if !ok[i] || v < -0.5 || v > len - 0.5 { f32::NAN } else { v + 0.5 };
-                }
-            }
+                },
+            )
         });
         out
     }

@@ -26,6 +26,8 @@ use rayon::prelude::*;
 use super::coords::ProjectorCoords;
 use super::decode::{ProjectorMap, INVALID};
 use crate::geometry::CameraModel;
+use crate::pipeline::simd::{has_avx2, run_simd};
+use crate::pipeline::PointCloud;
 
 /// Parameters of [`Triangulator::triangulate`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -116,6 +118,40 @@ impl RangeImage {
         (0..self.depth_m.len())
             .filter(|&i| self.depth_m[i] > 0.0)
             .map(|i| (self.points[i], self.normals[i], self.colours[i]))
+    }
+
+    /// The valid points (reference frame, metres) with their normals and colours as one cloud, in
+    /// [`RangeImage::valid_points`]' order: each camera row counted, then copied into its place,
+    /// rows in parallel.
+    pub fn valid_cloud(&self) -> PointCloud {
+        let w = (self.width as usize).max(1);
+        let n = self.depth_m.len().min(self.points.len()).min(self.normals.len()).min(self.colours.len());
+        let rows = n / w;
+        let counts: Vec<usize> =
+            self.depth_m[..rows * w].par_chunks(w).map(|r| r.iter().filter(|&&d| d > 0.0).count()).collect();
+        let total: usize = counts.iter().sum();
+        let mut points = vec![[0.0f32; 3]; total];
+        let mut normals = vec![[0.0f32; 3]; total];
+        let mut colours = vec![[0u8; 3]; total];
+        // Each row's share of the three outputs, split off in order.
+        let mut parts = Vec::with_capacity(rows);
+        let (mut p, mut nr, mut c) = (&mut points[..], &mut normals[..], &mut colours[..]);
+        for &k in &counts {
+            let (p0, p1) = p.split_at_mut(k);
+            let (n0, n1) = nr.split_at_mut(k);
+            let (c0, c1) = c.split_at_mut(k);
+            parts.push((p0, n0, c0));
+            (p, nr, c) = (p1, n1, c1);
+        }
+        parts.into_par_iter().enumerate().for_each(|(y, (p, nr, c))| {
+            let range = y * w..(y + 1) * w;
+            let valid = self.depth_m[range.clone()].iter().enumerate().filter(|(_, &d)| d > 0.0);
+            for (k, (x, _)) in valid.enumerate() {
+                let i = range.start + x;
+                (p[k], nr[k], c[k]) = (self.points[i], self.normals[i], self.colours[i]);
+            }
+        });
+        PointCloud::from_parts(points, Some(normals), Some(colours)).expect("one normal and colour per point")
     }
 }
 
@@ -214,6 +250,12 @@ fn ray_ray(
 /// 2. the neighbour test on the 8-neighbourhood in the image grid (depths only), into a byte mask;
 /// 3. normals from the kept image-grid neighbours, and colours;
 /// 4. the points and depths of removed pixels cleared.
+///
+/// Passes 1-3 compute every pixel of a row (or of a block of one) and mask the failed ones instead
+/// of branching per pixel, so that the compiler vectorises them, and run compiled for AVX2 when the
+/// CPU has it (`f64` points, `f32` normals; no FMA, so every CPU rounds the same). Pass 1 takes this
+/// path for a projector without distortion; a distorting projector's column surface or pixel rays
+/// are solved pixel by pixel.
 #[derive(Debug, Clone)]
 pub struct Triangulator {
     camera: CameraModel,
@@ -224,6 +266,8 @@ pub struct Triangulator {
     keep: Vec<u8>,
     /// Wall seconds of the last view's four passes.
     pass_s: [f64; 4],
+    /// The row kernels run compiled for AVX2 (the CPU has it).
+    simd: bool,
 }
 
 /// Where a pixel's projector coordinates come from: continuous coordinates, or the integer codes of
@@ -361,7 +405,14 @@ impl Triangulator {
                 *r = [d.x as f32, d.y as f32, d.z as f32];
             }
         });
-        Ok(Triangulator { camera: *camera, projector: *projector, rays, keep: Vec::new(), pass_s: [0.0; 4] })
+        Ok(Triangulator {
+            camera: *camera,
+            projector: *projector,
+            rays,
+            keep: Vec::new(),
+            pass_s: [0.0; 4],
+            simd: has_avx2(),
+        })
     }
 
     /// Triangulates `coords` (the projector coordinates seen by the camera's pixels), colours the
@@ -480,9 +531,9 @@ impl Triangulator {
                 s
             }
         };
-        let (decoded, triangulated) = triangulate_pass(&geo, &self.rays, src, rows, w, out);
+        let (decoded, triangulated) = triangulate_pass(&geo, &self.rays, src, rows, w, self.simd, out);
         self.pass_s[0] = lap();
-        let kept = neighbour_pass(&out.depth_m, w, params, &mut self.keep);
+        let kept = neighbour_pass(&out.depth_m, w, params, &mut self.keep, self.simd);
         self.pass_s[1] = lap();
         normal_pass(
             &geo.o,
@@ -492,6 +543,7 @@ impl Triangulator {
             w,
             params,
             white,
+            self.simd,
             &mut out.normals,
             &mut out.colours,
         );
@@ -503,6 +555,9 @@ impl Triangulator {
 }
 
 /// Pass 1: point and depth per pixel (`NaN` and 0 where none); returns (decoded, triangulated).
+/// A projector without distortion (ray-ray with rows, the column plane without skew) takes the
+/// branch-free row kernel of [`Linear`], compiled for AVX2 when `simd`; anything else the per-pixel
+/// [`Geometry::point`].
 #[inline(never)]
 fn triangulate_pass(
     geo: &Geometry<'_>,
@@ -510,21 +565,38 @@ fn triangulate_pass(
     src: Source<'_>,
     rows: bool,
     w: usize,
+    simd: bool,
     out: &mut RangeImage,
 ) -> (usize, usize) {
+    let linear = Linear::of(geo, rows);
     out.points
         .par_chunks_mut(w)
         .zip(out.depth_m.par_chunks_mut(w))
         .enumerate()
         .map(|(y, (pr, dr))| {
-            let (mut decoded, mut triangulated) = (0, 0);
             let base = y * w;
+            let ray_row = &rays[base..base + w];
+            if let Some(k) = &linear {
+                return match src {
+                    Source::Map { map, .. } => {
+                        let rws = if rows { &map.rows()[base..base + w] } else { &[][..] };
+                        let row = MapRow { cols: &map.columns()[base..base + w], rows: rws };
+                        k.row(&row, ray_row, pr, dr, simd)
+                    }
+                    Source::Coords(c) => {
+                        let rws = c.row.as_ref().map_or(&[][..], |r| &r[base..base + w]);
+                        let row = CoordsRow { cols: &c.column[base..base + w], rows: rws };
+                        k.row(&row, ray_row, pr, dr, simd)
+                    }
+                };
+            }
+            let (mut decoded, mut triangulated) = (0, 0);
             for (x, (p, z)) in pr.iter_mut().zip(dr.iter_mut()).enumerate() {
                 *p = [f32::NAN; 3];
                 *z = 0.0;
                 let Some((c, r)) = src.at(base + x) else { continue };
                 decoded += 1;
-                let d = rays[base + x];
+                let d = ray_row[x];
                 let d = Vector3::new(f64::from(d[0]), f64::from(d[1]), f64::from(d[2]));
                 let r = if rows { f64::from(r) } else { f64::NAN };
                 if let Some((q, depth)) = geo.point(d, f64::from(c), r) {
@@ -538,37 +610,280 @@ fn triangulate_pass(
         .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
 }
 
+/// One camera row of projector coordinates for [`Linear::row`].
+trait RowCoords {
+    /// Whether pixel `x` has coordinates, and its column and row (`f64`; the row is unused
+    /// without rows).
+    fn at(&self, x: usize) -> (bool, f64, f64);
+}
+
+/// A row of a Gray/binary map, taken at code centres (`i + 0.5`).
+struct MapRow<'a> {
+    cols: &'a [u16],
+    /// Empty without rows.
+    rows: &'a [u16],
+}
+
+impl RowCoords for MapRow<'_> {
+    #[inline(always)]
+    fn at(&self, x: usize) -> (bool, f64, f64) {
+        let c = self.cols[x];
+        let r = self.rows.get(x).copied().unwrap_or(0);
+        let ok = (c != INVALID) & (r != INVALID);
+        (ok, f64::from(f32::from(c) + 0.5), f64::from(f32::from(r) + 0.5))
+    }
+}
+
+/// A row of continuous coordinates (`NaN` invalid).
+struct CoordsRow<'a> {
+    cols: &'a [f32],
+    /// Empty without rows.
+    rows: &'a [f32],
+}
+
+impl RowCoords for CoordsRow<'_> {
+    #[inline(always)]
+    fn at(&self, x: usize) -> (bool, f64, f64) {
+        let c = self.cols[x];
+        let r = self.rows.get(x).copied().unwrap_or(0.0);
+        (c.is_finite() & r.is_finite(), f64::from(c), f64::from(r))
+    }
+}
+
+/// Pass 1 for a projector without distortion, as [`Geometry::point`] computes it but without a
+/// branch per pixel: every pixel of a row is computed and the failed ones masked, so that the
+/// compiler vectorises the row (`f64`, reference frame, metres).
+#[derive(Debug, Clone, Copy)]
+struct Linear {
+    /// Ray-ray (columns and rows) or the column plane (columns only, no skew).
+    rays: bool,
+    o: [f64; 3],
+    axis: [f64; 3],
+    po: [f64; 3],
+    /// `o - po`.
+    w: [f64; 3],
+    pr: [[f64; 3]; 3],
+    pt: [f64; 3],
+    cx: f64,
+    cy: f64,
+    /// `1 / fx`, `1 / fy`: the kernels multiply where [`Geometry::point`] divides.
+    inv_fx: f64,
+    inv_fy: f64,
+    skew: f64,
+    max_gap2: f64,
+}
+
+impl Linear {
+    /// The kernel for `geo`, or `None` when the projector needs the per-pixel path (distortion, or
+    /// skew without rows).
+    fn of(geo: &Geometry<'_>, rows: bool) -> Option<Linear> {
+        if !(geo.linear && (rows || geo.plane)) {
+            return None;
+        }
+        let v = |x: &Vector3<f64>| [x.x, x.y, x.z];
+        let k = &geo.projector.intrinsics;
+        Some(Linear {
+            rays: rows,
+            o: v(&geo.o),
+            axis: v(&geo.axis),
+            po: v(&geo.po),
+            w: v(&(geo.o - geo.po)),
+            pr: geo.pr.each_ref().map(v),
+            pt: v(&geo.pt),
+            cx: k.cx,
+            cy: k.cy,
+            inv_fx: 1.0 / k.fx,
+            inv_fy: 1.0 / k.fy,
+            skew: k.skew,
+            max_gap2: geo.max_gap * geo.max_gap,
+        })
+    }
+
+    /// Ray-ray points of one block: `lanes.c`, `lanes.r` and the ray `lanes.d` in, the point, depth
+    /// and whether it holds out ([`Geometry::point`]'s arithmetic, every test folded into the flag).
+    #[inline(always)]
+    fn ray_ray_block(&self, lanes: &mut Lanes) {
+        let [ox, oy, oz] = self.o;
+        let [wx, wy, wz] = self.w;
+        let [r0, r1, r2] = self.pr;
+        for l in 0..BLOCK {
+            let (dx, dy, dz) = (lanes.d[0][l], lanes.d[1][l], lanes.d[2][l]);
+            let yn = (lanes.r[l] - self.cy) * self.inv_fy;
+            let xn = (lanes.c[l] - self.cx - self.skew * yn) * self.inv_fx;
+            let (ex, ey, ez) =
+                (r2[0] + r0[0] * xn + r1[0] * yn, r2[1] + r0[1] * xn + r1[1] * yn, r2[2] + r0[2] * xn + r1[2] * yn);
+            let a = dx * dx + dy * dy + dz * dz;
+            let b = dx * ex + dy * ey + dz * ez;
+            let cc = ex * ex + ey * ey + ez * ez;
+            let dd = dx * wx + dy * wy + dz * wz;
+            let e = ex * wx + ey * wy + ez * wz;
+            let den = a * cc - b * b;
+            let inv = 1.0 / den;
+            let s = (b * e - cc * dd) * inv;
+            let t = (a * e - b * dd) * inv;
+            let (p1x, p1y, p1z) = (ox + dx * s, oy + dy * s, oz + dz * s);
+            let (p2x, p2y, p2z) = (self.po[0] + ex * t, self.po[1] + ey * t, self.po[2] + ez * t);
+            let (gx, gy, gz) = (p1x - p2x, p1y - p2y, p1z - p2z);
+            let ok = (den >= 1e-12 * a * cc) & (s > 0.0) & (t > 0.0) & (gx * gx + gy * gy + gz * gz <= self.max_gap2);
+            let (px, py, pz) = ((p1x + p2x) * 0.5, (p1y + p2y) * 0.5, (p1z + p2z) * 0.5);
+            self.finish(lanes, l, [px, py, pz], ok);
+        }
+    }
+
+    /// Column-plane points of one block (columns only, no skew), as [`Linear::ray_ray_block`].
+    #[inline(always)]
+    fn plane_block(&self, lanes: &mut Lanes) {
+        let [ox, oy, oz] = self.o;
+        let [r0, _, r2] = self.pr;
+        for l in 0..BLOCK {
+            let (dx, dy, dz) = (lanes.d[0][l], lanes.d[1][l], lanes.d[2][l]);
+            let xn = (lanes.c[l] - self.cx) * self.inv_fx;
+            let (nx, ny, nz) = (r0[0] - r2[0] * xn, r0[1] - r2[1] * xn, r0[2] - r2[2] * xn);
+            let den = nx * dx + ny * dy + nz * dz;
+            let s = -(nx * ox + ny * oy + nz * oz + self.pt[0] - xn * self.pt[2]) / den;
+            let (px, py, pz) = (ox + dx * s, oy + dy * s, oz + dz * s);
+            let front = r2[0] * px + r2[1] * py + r2[2] * pz + self.pt[2] > 0.0;
+            let ok = (den.abs() >= 1e-12) & s.is_finite() & (s > 0.0) & front;
+            self.finish(lanes, l, [px, py, pz], ok);
+        }
+    }
+
+    /// Depth along the camera axis and the last tests (in front, finite) of lane `l`'s point.
+    #[inline(always)]
+    fn finish(&self, lanes: &mut Lanes, l: usize, p: [f64; 3], ok: bool) {
+        let [ax, ay, az] = self.axis;
+        let z = ax * (p[0] - self.o[0]) + ay * (p[1] - self.o[1]) + az * (p[2] - self.o[2]);
+        let ok = ok & lanes.has[l] & (z > 0.0) & p[0].is_finite() & p[1].is_finite() & p[2].is_finite();
+        for (k, &v) in p.iter().enumerate() {
+            lanes.p[k][l] = if ok { v as f32 } else { f32::NAN };
+        }
+        lanes.z[l] = if ok { z as f32 } else { 0.0 };
+        lanes.ok[l] = ok;
+    }
+
+    /// One camera row: points and depths written (`NaN` and 0 where none); returns (decoded,
+    /// triangulated).
+    fn row(
+        &self,
+        src: &impl RowCoords,
+        rays: &[[f32; 3]],
+        points: &mut [[f32; 3]],
+        depth: &mut [f32],
+        simd: bool,
+    ) -> (usize, usize) {
+        run_simd(
+            simd,
+            #[inline(always)]
+            || self.row_kernel(src, rays, points, depth),
+        )
+    }
+
+    /// The row in blocks of [`BLOCK`] pixels: coordinates and rays gathered into lanes, the block
+    /// computed lane by lane without a branch (so it vectorises), the results scattered back.
+    #[inline(always)]
+    fn row_kernel(
+        &self,
+        src: &impl RowCoords,
+        rays: &[[f32; 3]],
+        points: &mut [[f32; 3]],
+        depth: &mut [f32],
+    ) -> (usize, usize) {
+        let n = points.len().min(depth.len()).min(rays.len());
+        let (mut decoded, mut triangulated) = (0usize, 0usize);
+        let mut lanes = Lanes::default();
+        let mut start = 0;
+        while start < n {
+            let m = (n - start).min(BLOCK);
+            for l in 0..m {
+                let (has, c, r) = src.at(start + l);
+                lanes.has[l] = has;
+                (lanes.c[l], lanes.r[l]) = (c, r);
+                for (lane, &v) in lanes.d.iter_mut().zip(&rays[start + l]) {
+                    lane[l] = f64::from(v);
+                }
+                decoded += usize::from(has);
+            }
+            for l in m..BLOCK {
+                lanes.has[l] = false;
+            }
+            if self.rays {
+                self.ray_ray_block(&mut lanes);
+            } else {
+                self.plane_block(&mut lanes);
+            }
+            for l in 0..m {
+                points[start + l] = [lanes.p[0][l], lanes.p[1][l], lanes.p[2][l]];
+                depth[start + l] = lanes.z[l];
+                triangulated += usize::from(lanes.ok[l]);
+            }
+            start += m;
+        }
+        (decoded, triangulated)
+    }
+}
+
+/// Pixels per block of [`Linear::row_kernel`].
+const BLOCK: usize = 128;
+
+/// One block of pixels for [`Linear`], one array per quantity (structure of arrays).
+struct Lanes {
+    has: [bool; BLOCK],
+    c: [f64; BLOCK],
+    r: [f64; BLOCK],
+    /// The camera ray, `x`, `y`, `z`.
+    d: [[f64; BLOCK]; 3],
+    p: [[f32; BLOCK]; 3],
+    z: [f32; BLOCK],
+    ok: [bool; BLOCK],
+}
+
+impl Default for Lanes {
+    fn default() -> Lanes {
+        Lanes {
+            has: [false; BLOCK],
+            c: [0.0; BLOCK],
+            r: [0.0; BLOCK],
+            d: [[0.0; BLOCK]; 3],
+            p: [[0.0; BLOCK]; 3],
+            z: [0.0; BLOCK],
+            ok: [false; BLOCK],
+        }
+    }
+}
+
 /// Pass 2: `keep[i] = 1` where pixel `i` has a point and at least `min_neighbours` of its 8
 /// image-grid neighbours have points within `neighbour_tolerance_m` in depth; returns the kept count.
+/// The interior of each row runs branch-free ([`neighbour_interior`], AVX2 when `simd`), the two end
+/// pixels one by one; a missing row above or below reads as depth 0 (no point).
 #[inline(never)]
-fn neighbour_pass(depth: &[f32], w: usize, params: &TriangulationParams, keep: &mut [u8]) -> usize {
+fn neighbour_pass(depth: &[f32], w: usize, params: &TriangulationParams, keep: &mut [u8], simd: bool) -> usize {
     let tol = params.neighbour_tolerance_m as f32;
+    let min = params.min_neighbours;
     let h = depth.len() / w;
+    let none = vec![0.0f32; w];
     keep.par_chunks_mut(w)
         .enumerate()
         .map(|(y, kr)| {
             let cur = &depth[y * w..(y + 1) * w];
-            let up = (y > 0).then(|| &depth[(y - 1) * w..y * w]);
-            let down = (y + 1 < h).then(|| &depth[(y + 1) * w..(y + 2) * w]);
-            let mut kept = 0;
-            for (x, k) in kr.iter_mut().enumerate() {
+            let up = if y > 0 { &depth[(y - 1) * w..y * w] } else { &none[..] };
+            let down = if y + 1 < h { &depth[(y + 1) * w..(y + 2) * w] } else { &none[..] };
+            let rows = [up, cur, down];
+            let mut kept = run_simd(
+                simd,
+                #[inline(always)]
+                || neighbour_interior(rows, tol, min, kr),
+            );
+            let ends: &[usize] = if w == 1 { &[0] } else { &[0, w - 1] };
+            for &x in ends {
                 let d0 = cur[x];
-                if d0 <= 0.0 {
-                    *k = 0;
-                    continue;
-                }
                 let close = |v: f32| u8::from(v > 0.0 && (v - d0).abs() <= tol);
-                let (l, r) = (x.checked_sub(1), (x + 1 < w).then_some(x + 1));
-                let mut near = 0u8;
-                for (row, centre) in [(up, true), (Some(cur), false), (down, true)] {
-                    let Some(row) = row else { continue };
-                    near += l.map_or(0, |l| close(row[l])) + r.map_or(0, |r| close(row[r]));
-                    if centre {
-                        near += close(row[x]);
-                    }
+                let cols = [x.checked_sub(1), (x + 1 < w).then_some(x + 1)];
+                let mut near = close(up[x]) + close(down[x]);
+                for row in rows {
+                    near += cols.iter().flatten().map(|&c| close(row[c])).sum::<u8>();
                 }
-                let ok = near >= params.min_neighbours;
-                *k = u8::from(ok);
+                let ok = d0 > 0.0 && near >= min;
+                kr[x] = u8::from(ok);
                 kept += usize::from(ok);
             }
             kept
@@ -576,9 +891,43 @@ fn neighbour_pass(depth: &[f32], w: usize, params: &TriangulationParams, keep: &
         .sum()
 }
 
+/// Pass 2 on pixels `1..w - 1` of a row (`rows`: above, the row, below): the flags written to
+/// `keep`, the kept count returned.
+#[inline(always)]
+fn neighbour_interior(rows: [&[f32]; 3], tol: f32, min: u8, keep: &mut [u8]) -> usize {
+    let w = keep.len();
+    if w < 3 || rows.iter().any(|r| r.len() != w) {
+        return 0;
+    }
+    let n = w - 2;
+    let [up, cur, down] = rows;
+    let (ul, uc, ur) = (&up[..n], &up[1..n + 1], &up[2..]);
+    let (cl, cc, cr) = (&cur[..n], &cur[1..n + 1], &cur[2..]);
+    let (dl, dc, dr) = (&down[..n], &down[1..n + 1], &down[2..]);
+    let k = &mut keep[1..n + 1];
+    let mut kept = 0u32;
+    for i in 0..n {
+        let d0 = cc[i];
+        let close = |v: f32| u8::from((v > 0.0) & ((v - d0).abs() <= tol));
+        let near = close(ul[i])
+            + close(uc[i])
+            + close(ur[i])
+            + close(cl[i])
+            + close(cr[i])
+            + close(dl[i])
+            + close(dc[i])
+            + close(dr[i]);
+        let ok = (d0 > 0.0) & (near >= min);
+        k[i] = u8::from(ok);
+        kept += u32::from(ok);
+    }
+    kept as usize
+}
+
 /// Pass 3: unit normals (facing the camera centre `o`) from the kept image-grid neighbours on the
 /// same surface, central differences where both are, one-sided otherwise (zero where neither); and
-/// colours from `white` (black without it).
+/// colours from `white` (black without it). Inner pixels run branch-free ([`normal_interior`], AVX2
+/// when `simd`), the image's border one by one ([`normal_at`]).
 #[inline(never)]
 #[allow(clippy::too_many_arguments)]
 fn normal_pass(
@@ -589,12 +938,13 @@ fn normal_pass(
     w: usize,
     params: &TriangulationParams,
     white: Option<&image::RgbImage>,
+    simd: bool,
     normals: &mut [[f32; 3]],
     colours: &mut [[u8; 3]],
 ) {
     let tol = params.neighbour_tolerance_m as f32;
     let h = depth.len() / w;
-    let o = Vector3::new(o.x as f32, o.y as f32, o.z as f32);
+    let o = [o.x as f32, o.y as f32, o.z as f32];
     normals.par_chunks_mut(w).zip(colours.par_chunks_mut(w)).enumerate().for_each(|(y, (nr, cr))| {
         match white {
             Some(img) => {
@@ -604,38 +954,122 @@ fn normal_pass(
             }
             None => cr.fill([0; 3]),
         }
-        let p = |j: usize| Vector3::from(points[j]);
-        for (x, nrm) in nr.iter_mut().enumerate() {
-            let i = y * w + x;
-            *nrm = [0.0; 3];
-            if keep[i] == 0 {
-                continue;
-            }
-            let d0 = depth[i];
-            // A kept neighbour on the same surface.
-            let on = |j: usize| keep[j] != 0 && (depth[j] - d0).abs() <= tol;
-            let pick = |ok: bool, j: usize| (ok && on(j)).then_some(j);
-            let diff = |a: Option<usize>, b: Option<usize>| match (a, b) {
-                (Some(a), Some(b)) => Some(p(b) - p(a)),
-                (Some(a), None) => Some(p(i) - p(a)),
-                (None, Some(b)) => Some(p(b) - p(i)),
-                (None, None) => None,
+        let inner = y > 0 && y + 1 < h && w >= 3;
+        if inner {
+            let rows = |k: usize| k * w..(k + 1) * w;
+            let three = |r: [usize; 3]| r.map(&rows);
+            let [ru, rc, rd] = three([y - 1, y, y + 1]);
+            let view = NormalRows {
+                points: [&points[ru.clone()], &points[rc.clone()], &points[rd.clone()]],
+                depth: [&depth[ru.clone()], &depth[rc.clone()], &depth[rd.clone()]],
+                keep: [&keep[ru], &keep[rc], &keep[rd]],
             };
-            let du = diff(pick(x > 0, i.wrapping_sub(1)), pick(x + 1 < w, i + 1));
-            let dv = diff(pick(y > 0, i.wrapping_sub(w)), pick(y + 1 < h, i + w));
-            let (Some(du), Some(dv)) = (du, dv) else { continue };
-            let mut v = du.cross(&dv);
-            let len = v.norm();
-            if !(len > 0.0 && len.is_finite()) {
+            run_simd(
+                simd,
+                #[inline(always)]
+                || normal_interior(&view, o, tol, nr),
+            );
+        }
+        for (x, n) in nr.iter_mut().enumerate() {
+            if inner && x > 0 && x + 1 < w {
                 continue;
             }
-            v /= len;
-            if v.dot(&(o - p(i))) < 0.0 {
-                v = -v;
-            }
-            *nrm = [v.x, v.y, v.z];
+            *n = normal_at(o, points, depth, keep, w, h, tol, x, y);
         }
     });
+}
+
+/// The rows above, at and below an inner camera row, for [`normal_interior`].
+struct NormalRows<'a> {
+    points: [&'a [[f32; 3]]; 3],
+    depth: [&'a [f32]; 3],
+    keep: [&'a [u8]; 3],
+}
+
+#[inline(always)]
+fn sub3(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+/// Pass 3 on pixels `1..w - 1` of an inner row, every pixel computed and masked (the same
+/// arithmetic as [`normal_at`]).
+#[inline(always)]
+fn normal_interior(rows: &NormalRows<'_>, o: [f32; 3], tol: f32, normals: &mut [[f32; 3]]) {
+    let w = normals.len();
+    let ok_len = rows.points.iter().all(|r| r.len() == w)
+        && rows.depth.iter().all(|r| r.len() == w)
+        && rows.keep.iter().all(|r| r.len() == w);
+    if w < 3 || !ok_len {
+        return;
+    }
+    let n = w - 2;
+    let [pu, pc, pd] = rows.points;
+    let [du, dc, dd] = rows.depth;
+    let [ku, kc, kd] = rows.keep;
+    let (pl, pm, pr, pu, pd) = (&pc[..n], &pc[1..n + 1], &pc[2..], &pu[1..n + 1], &pd[1..n + 1]);
+    let (dl, dm, dr, du, dd) = (&dc[..n], &dc[1..n + 1], &dc[2..], &du[1..n + 1], &dd[1..n + 1]);
+    let (kl, km, kr, ku, kd) = (&kc[..n], &kc[1..n + 1], &kc[2..], &ku[1..n + 1], &kd[1..n + 1]);
+    let out = &mut normals[1..n + 1];
+    for i in 0..n {
+        let d0 = dm[i];
+        let on = |k: u8, d: f32| (k != 0) & ((d - d0).abs() <= tol);
+        let (l, r, u, b) = (on(kl[i], dl[i]), on(kr[i], dr[i]), on(ku[i], du[i]), on(kd[i], dd[i]));
+        let p = pm[i];
+        let pick = |ok: bool, q: [f32; 3]| if ok { q } else { p };
+        let eu = sub3(pick(r, pr[i]), pick(l, pl[i]));
+        let ev = sub3(pick(b, pd[i]), pick(u, pu[i]));
+        let v = [eu[1] * ev[2] - eu[2] * ev[1], eu[2] * ev[0] - eu[0] * ev[2], eu[0] * ev[1] - eu[1] * ev[0]];
+        let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        let v = v.map(|c| c / len);
+        let t = sub3(o, p);
+        let flip = v[0] * t[0] + v[1] * t[1] + v[2] * t[2] < 0.0;
+        let v = if flip { v.map(|c| -c) } else { v };
+        let ok = (km[i] != 0) & (l | r) & (u | b) & (len > 0.0) & len.is_finite();
+        out[i] = if ok { v } else { [0.0; 3] };
+    }
+}
+
+/// Pass 3 at one pixel `(x, y)`, any pixel of the image (borders included).
+#[allow(clippy::too_many_arguments)]
+fn normal_at(
+    o: [f32; 3],
+    points: &[[f32; 3]],
+    depth: &[f32],
+    keep: &[u8],
+    w: usize,
+    h: usize,
+    tol: f32,
+    x: usize,
+    y: usize,
+) -> [f32; 3] {
+    let i = y * w + x;
+    if keep[i] == 0 {
+        return [0.0; 3];
+    }
+    let p = |j: usize| Vector3::from(points[j]);
+    let d0 = depth[i];
+    // A kept neighbour on the same surface.
+    let on = |j: usize| keep[j] != 0 && (depth[j] - d0).abs() <= tol;
+    let pick = |ok: bool, j: usize| (ok && on(j)).then_some(j);
+    let diff = |a: Option<usize>, b: Option<usize>| match (a, b) {
+        (Some(a), Some(b)) => Some(p(b) - p(a)),
+        (Some(a), None) => Some(p(i) - p(a)),
+        (None, Some(b)) => Some(p(b) - p(i)),
+        (None, None) => None,
+    };
+    let du = diff(pick(x > 0, i.wrapping_sub(1)), pick(x + 1 < w, i + 1));
+    let dv = diff(pick(y > 0, i.wrapping_sub(w)), pick(y + 1 < h, i + w));
+    let (Some(du), Some(dv)) = (du, dv) else { return [0.0; 3] };
+    let mut v = du.cross(&dv);
+    let len = v.norm();
+    if !(len > 0.0 && len.is_finite()) {
+        return [0.0; 3];
+    }
+    v /= len;
+    if v.dot(&(Vector3::from(o) - p(i))) < 0.0 {
+        v = -v;
+    }
+    [v.x, v.y, v.z]
 }
 
 /// Pass 4: the points and depths of pixels that failed the neighbour test cleared.
@@ -963,9 +1397,11 @@ mod tests {
     fn the_fused_passes_equal_the_per_pixel_reference() {
         let white = image::RgbImage::from_fn(96, 72, |x, y| image::Rgb([x as u8, y as u8, (x ^ y) as u8]));
         let mut cases = 0;
-        for k1 in [0.0, -0.08] {
+        // The row kernels both generic and, where the CPU has it, compiled for AVX2.
+        for (k1, simd) in [(0.0, false), (0.0, has_avx2()), (-0.08, false)] {
             let (cam, proj) = rig(k1);
             let mut tri = Triangulator::new(&cam, &proj).expect("models");
+            tri.simd = simd;
             // One output reused across every case: stale values must not survive.
             let mut out = RangeImage::default();
             for rows in [false, true] {
@@ -984,17 +1420,25 @@ mod tests {
                         TriangulationParams::default(),
                         TriangulationParams { min_neighbours: 0, ..Default::default() },
                     ] {
-                        let what = format!("k1 {k1} rows {rows} {name} min_neighbours {}", params.min_neighbours);
+                        let what =
+                            format!("k1 {k1} simd {simd} rows {rows} {name} min_neighbours {}", params.min_neighbours);
                         let want = reference_of(&cam, &proj, &coords, Some(&white), &params);
                         assert!(want.valid_count() > 150, "{what}: {} points", want.valid_count());
                         tri.triangulate_into(&coords, Some(&white), &params, &mut out).expect("triangulates");
                         assert_same(&out, &want, 2e-6, &what);
+                        // The cloud gathered row by row holds the valid points in order.
+                        let cloud = out.valid_cloud();
+                        let (p, n, c): (Vec<_>, Vec<_>, (Vec<_>, ())) =
+                            out.valid_points().map(|(p, n, c)| (p, n, (c, ()))).collect();
+                        assert_eq!(cloud.points(), p.as_slice(), "{what}");
+                        assert_eq!(cloud.normals(), Some(n.as_slice()), "{what}");
+                        assert_eq!(cloud.colors(), Some(c.0.as_slice()), "{what}");
                         cases += 1;
                     }
                 }
             }
         }
-        assert_eq!(cases, 16);
+        assert_eq!(cases, 24);
     }
 
     #[test]
@@ -1012,7 +1456,8 @@ mod tests {
             .unzip();
         let map = ProjectorMap::from_parts(w, h, cols, rws);
         let mut tri = Triangulator::new(&cam, &proj).expect("models");
-        for rows in [false, true] {
+        for (rows, simd) in [(false, false), (true, false), (false, has_avx2()), (true, has_avx2())] {
+            tri.simd = simd;
             let params = TriangulationParams::default();
             let want = tri.triangulate(&ProjectorCoords::from_map(&map, rows), None, &params).expect("coords");
             let mut got = RangeImage::default();

@@ -740,16 +740,9 @@ impl ScanFlow for StructuredLightFlow {
         self.summary.triangulate_s += t.elapsed().as_secs_f64();
         self.summary.decoded.push(range.decoded);
         self.summary.outliers += range.outliers;
-        let (mut pts, mut nrm, mut col) = (Vec::new(), Vec::new(), Vec::new());
-        for (p, n, c) in range.valid_points() {
-            pts.push(p);
-            nrm.push(n);
-            col.push(c);
-        }
-        let points = pts.len();
+        let mut view = range.valid_cloud();
+        let points = view.len();
         self.summary.points_per_view.push(points);
-        let mut view =
-            PointCloud::from_parts(pts, Some(nrm), Some(col)).map_err(|e| sl_err(StructuredLightError::Cloud(e)))?;
         view.rig_to_object(stack.angle_deg);
         self.cloud.extend(view);
         if let Some(world) = &self.world {
