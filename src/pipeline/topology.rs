@@ -42,8 +42,9 @@
 //! more handles than the input and has the same components and cavities; a voxel filled touches a
 //! solid voxel of the input and a voxel cut an empty one (26-neighbourhood), so the surface moves by
 //! at most about one voxel, and only where it plugs a tunnel or cuts a bridge; a phase that removes
-//! no handle changes nothing. A real handle wider than that (a cup's handle, a torus)
-//! has no candidate that removes it and stays.
+//! no handle changes nothing. A real handle whose hole and whose bar are both wider than about two
+//! voxels (a cup's handle, a torus) has no candidate that removes it and stays; a real bar or slot
+//! thinner than that is taken for noise.
 
 use std::collections::VecDeque;
 use std::sync::OnceLock;
@@ -63,16 +64,18 @@ pub struct HandleRepair {
     pub tunnels_filled: u64,
     /// Bridges cut (each lowers the genus by one).
     pub bridges_cut: u64,
-    /// Empty voxels made solid (the plugs).
+    /// Empty voxels of the input made solid (the plugs).
     pub voxels_added: u64,
-    /// Solid voxels made empty (the cuts).
+    /// Solid voxels of the input made empty (the cuts).
     pub voxels_removed: u64,
     /// Wall-clock time, seconds.
     pub seconds: f64,
 }
 
 impl HandleRepair {
-    /// Handles removed in all: the surface's genus drop, and half its Euler characteristic's rise.
+    /// Handles removed in all, summed over the surface's components (a floating part that the mesh
+    /// clean-up drops later may have had some): the genus drop, and half the Euler characteristic's
+    /// rise.
     pub fn handles_removed(&self) -> u64 {
         self.tunnels_filled + self.bridges_cut
     }
