@@ -157,8 +157,11 @@ fn benches(c: &mut Criterion) {
         let mut carver = SpaceCarver::new(VoxelGrid::from_resolution(&DINO_BOX, 256)).expect("carver");
         carver.add_views(&dino.views()).expect("carve");
         let t = Instant::now();
-        let mesh =
-            extract_surface(carver.occupancy(), &MeshParams { smooth_radius: 1, relax_iterations: 0 }).expect("mesh");
+        let mesh = extract_surface(
+            carver.occupancy(),
+            &MeshParams { smooth_radius: 1, relax_iterations: 0, remove_handles: false },
+        )
+        .expect("mesh");
         println!(
             "dino 256^3 surface (smooth radius 1): {} triangles in {:.1} ms",
             mesh.triangles.len(),

@@ -35,8 +35,9 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
 
 use super::export::ExportError;
-use super::mesh::{extract_surface, MeshError, MeshParams, TriangleMesh};
+use super::mesh::{extract_surface_reporting, MeshError, MeshParams, TriangleMesh};
 use super::occupancy::Occupancy;
+use super::topology::HandleRepair;
 use crate::atomic::write_atomic;
 use crate::geometry::{turntable_rotation, Aabb, VoxelGrid};
 
@@ -769,6 +770,9 @@ pub struct CloudMeshStats {
     pub flipped_voxels: u64,
     /// Mesh vertices moved onto the zero crossing.
     pub refined_vertices: u64,
+    /// Voxel-scale handles removed from the inside voxels before meshing (the returned solid is
+    /// the one before).
+    pub handles: HandleRepair,
 }
 
 /// Call `visit` with the index of each voxel of `grid` the line from `p` along the unit direction
@@ -1007,7 +1011,8 @@ pub fn mesh_from_cloud(
     solid_and_mesh_from_cloud(cloud, grid, params).map(|(_, mesh, stats)| (mesh, stats))
 }
 
-/// As [`mesh_from_cloud`], also returning the solid the mesh bounds (the inside voxels of `grid`).
+/// As [`mesh_from_cloud`], also returning the solid the mesh bounds (the inside voxels of `grid`, before
+/// the voxel-scale handles are removed for meshing; see [`CloudMeshStats::handles`]).
 pub fn solid_and_mesh_from_cloud(
     cloud: &PointCloud,
     grid: &VoxelGrid,
@@ -1256,7 +1261,7 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
     let occupancy = Occupancy::from_index_fn(*grid, |i, j, k| label[grid.index(i, j, k)] < 0);
     let inside_voxels = occupancy.count();
     // 4. Surface, then vertices onto the zero crossing (at most one voxel edge).
-    let mut mesh = extract_surface(&occupancy, &MeshParams::smoothed(0))?;
+    let (mut mesh, handles) = extract_surface_reporting(&occupancy, &MeshParams::smoothed(0))?;
     let limit = vs as f32;
     let converged = (NEWTON_TOLERANCE_VOXELS * vs) as f32;
     let refined: usize = mesh
@@ -1295,6 +1300,7 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
         inside_voxels,
         flipped_voxels: flipped,
         refined_vertices: refined as u64,
+        handles: handles.unwrap_or_default(),
     };
     Ok((occupancy, mesh, stats))
 }

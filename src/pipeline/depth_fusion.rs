@@ -936,7 +936,9 @@ mod tests {
         let ball = 4.0 / 3.0 * std::f64::consts::PI * R.powi(3);
         assert!((occ.volume_m3() / ball - 1.0).abs() < 0.06, "{} vs {ball}", occ.volume_m3());
         // The refined mesh lies on the sphere to a fraction of a voxel.
-        let mut mesh = extract_surface(&occ, &MeshParams { smooth_radius: 0, relax_iterations: 0 }).expect("mesh");
+        let mut mesh =
+            extract_surface(&occ, &MeshParams { smooth_radius: 0, relax_iterations: 0, remove_handles: false })
+                .expect("mesh");
         let err = |m: &TriangleMesh| {
             m.vertices.iter().map(|v| (Vector3::new(v[0], v[1], v[2]).norm() as f64 - R).abs()).sum::<f64>()
                 / m.vertices.len() as f64

@@ -20,12 +20,18 @@
 //! outside lattice point it separates. The surface keeps separating exactly the same voxel centres
 //! (it stays consistent with the occupancy), keeps its connectivity (closed and oriented), and lands
 //! at sub-voxel positions instead of on the stairs.
+//!
+//! With [`MeshParams::remove_handles`] (on in [`MeshParams::smoothed`], what the scan methods use) the
+//! occupancy first loses its voxel-scale handles ([`super::topology`]): a hole of a voxel or two
+//! through a thin wall is plugged, a bridge a voxel or two thick over a groove is cut, changing only
+//! voxels within one voxel of the surface; larger handles stay.
 
 use std::collections::HashMap;
 
 use rayon::prelude::*;
 
 use super::occupancy::{Brick, Occupancy, BRICK};
+use super::topology::{remove_small_handles, HandleRepair};
 
 /// Parameters of [`extract_surface`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -34,6 +40,10 @@ pub struct MeshParams {
     pub smooth_radius: u32,
     /// Constrained relaxation steps (module docs); 0 leaves every vertex where the interpolation put it.
     pub relax_iterations: u32,
+    /// Remove voxel-scale handles (tunnels through thin walls, bridges over grooves) from the
+    /// occupancy before meshing ([`remove_small_handles`]): the surface moves by at most about one
+    /// voxel, only where that removes a handle.
+    pub remove_handles: bool,
 }
 
 impl MeshParams {
@@ -43,10 +53,10 @@ impl MeshParams {
     /// (each step moves a vertex at most half-way to its neighbours' mean).
     pub const RELAX_ITERATIONS: u32 = 16;
 
-    /// Box smoothing of `smooth_radius` voxels, then [`MeshParams::RELAX_ITERATIONS`] relaxation steps:
-    /// what the scan methods mesh with.
+    /// Voxel-scale handles removed, box smoothing of `smooth_radius` voxels, then
+    /// [`MeshParams::RELAX_ITERATIONS`] relaxation steps: what the scan methods mesh with.
     pub fn smoothed(smooth_radius: u32) -> MeshParams {
-        MeshParams { smooth_radius, relax_iterations: Self::RELAX_ITERATIONS }
+        MeshParams { smooth_radius, relax_iterations: Self::RELAX_ITERATIONS, remove_handles: true }
     }
 }
 
@@ -127,6 +137,31 @@ type Part = (Vec<(u64, [f32; 3])>, Vec<[u32; 3]>);
 
 /// Extract the surface of `occupancy` (see the module docs).
 pub fn extract_surface(occupancy: &Occupancy, params: &MeshParams) -> Result<TriangleMesh, MeshError> {
+    extract_surface_reporting(occupancy, params).map(|(mesh, _)| mesh)
+}
+
+/// As [`extract_surface`], also returning what the handle removal changed (`None` when
+/// [`MeshParams::remove_handles`] is off). The mesh is that of the repaired occupancy; the caller's
+/// occupancy is left as it is.
+pub fn extract_surface_reporting(
+    occupancy: &Occupancy,
+    params: &MeshParams,
+) -> Result<(TriangleMesh, Option<HandleRepair>), MeshError> {
+    if params.smooth_radius > MeshParams::MAX_SMOOTH_RADIUS {
+        return Err(MeshError::SmoothRadius { radius: params.smooth_radius, max: MeshParams::MAX_SMOOTH_RADIUS });
+    }
+    if !params.remove_handles {
+        return march(occupancy, params).map(|mesh| (mesh, None));
+    }
+    let (repaired, stats) = remove_small_handles(occupancy);
+    if stats.handles_removed() > 0 {
+        tracing::info!(?stats, "voxel-scale handles removed before meshing");
+    }
+    march(&repaired, params).map(|mesh| (mesh, Some(stats)))
+}
+
+/// Marching tetrahedra and relaxation over `occupancy` as it is.
+fn march(occupancy: &Occupancy, params: &MeshParams) -> Result<TriangleMesh, MeshError> {
     let r = params.smooth_radius;
     if r > MeshParams::MAX_SMOOTH_RADIUS {
         return Err(MeshError::SmoothRadius { radius: r, max: MeshParams::MAX_SMOOTH_RADIUS });
@@ -580,7 +615,9 @@ mod tests {
     fn sphere_mesh_is_closed_oriented_and_has_the_right_volume() {
         for r in [0, 1, 2] {
             let occ = sphere(40, 0.6);
-            let mesh = extract_surface(&occ, &MeshParams { smooth_radius: r, relax_iterations: 0 }).expect("mesh");
+            let mesh =
+                extract_surface(&occ, &MeshParams { smooth_radius: r, relax_iterations: 0, remove_handles: false })
+                    .expect("mesh");
             assert!(!mesh.triangles.is_empty());
             assert_eq!(mesh.open_or_misoriented_edges(), 0, "radius {r}");
             let v = mesh.signed_volume();
@@ -594,7 +631,9 @@ mod tests {
     fn relaxation_leaves_the_stairs_for_sub_voxel_positions_on_their_edges() {
         let occ = sphere(40, 0.6);
         let centre = Vector3::new(0.05, -0.1, 0.0);
-        let stairs = extract_surface(&occ, &MeshParams { smooth_radius: 0, relax_iterations: 0 }).expect("mesh");
+        let stairs =
+            extract_surface(&occ, &MeshParams { smooth_radius: 0, relax_iterations: 0, remove_handles: false })
+                .expect("mesh");
         let relaxed = extract_surface(&occ, &MeshParams::smoothed(0)).expect("mesh");
         assert_eq!(stairs.triangles, relaxed.triangles, "relaxation moves vertices only");
         assert_eq!(relaxed.topology().open_or_misoriented_edges, 0);
@@ -621,12 +660,14 @@ mod tests {
     fn object_touching_the_grid_border_is_closed_by_the_padding() {
         let g = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [1.0; 3] }, 19);
         let occ = Occupancy::from_fn(g, |p| p.x < 0.7 || (p.y - 0.5).abs() < 0.1);
-        let mesh = extract_surface(&occ, &MeshParams { smooth_radius: 1, relax_iterations: 0 }).expect("mesh");
+        let mesh = extract_surface(&occ, &MeshParams { smooth_radius: 1, relax_iterations: 0, remove_handles: false })
+            .expect("mesh");
         assert_eq!(mesh.open_or_misoriented_edges(), 0);
         assert!(mesh.signed_volume() > 0.0);
         let full = extract_surface(&Occupancy::full(g), &MeshParams::default()).expect("mesh");
         assert_eq!(full.open_or_misoriented_edges(), 0);
-        assert!(extract_surface(&occ, &MeshParams { smooth_radius: 99, relax_iterations: 0 }).is_err());
+        assert!(extract_surface(&occ, &MeshParams { smooth_radius: 99, relax_iterations: 0, remove_handles: false })
+            .is_err());
     }
 
     #[test]

@@ -8,6 +8,7 @@
 //!   light positions from a calibration sphere.
 //! - [`depth_fusion`], [`chamfer`]: TSDF fusion of depth maps; Chamfer distance between point sets.
 //! - [`mesh`]: watertight surface extraction from an occupancy.
+//! - [`topology`]: removal of voxel-scale handles from an occupancy before meshing.
 //! - [`coloring`]: per-vertex colours from calibrated images.
 //! - [`photo_consistency`], [`voxel_coloring`]: shape and colour from photo-consistency.
 //! - [`export`]: PLY / STL / OBJ writers, written atomically.
@@ -34,6 +35,7 @@ pub(crate) mod simd;
 pub mod simplify;
 pub mod space_carving;
 pub mod structured_light;
+pub mod topology;
 pub mod voxel_coloring;
 
 pub use chamfer::{chamfer_distance, sample_mesh, Chamfer, PointIndex};
@@ -45,7 +47,8 @@ pub use depth_fusion::{DepthFusionError, FusionParams, IntegrateStats, Tsdf};
 pub use export::ExportError;
 pub use hausdorff::{hausdorff_distance, Hausdorff, TriangleIndex};
 pub use mesh::{
-    extract_surface, keep_main_component, MeshCleanStats, MeshError, MeshParams, MeshTopology, TriangleMesh,
+    extract_surface, extract_surface_reporting, keep_main_component, MeshCleanStats, MeshError, MeshParams,
+    MeshTopology, TriangleMesh,
 };
 pub use occupancy::{Brick, BrickBits, GridMismatch, Occupancy, Overlap};
 pub use photo_consistency::{image_noise_sigma, ItemBuffer, PhotoError, PhotoNoise, PhotoParams, PhotoView};
@@ -56,6 +59,7 @@ pub use shadows::{detect_shadows, ShadowError, ShadowMaps, ShadowParams};
 pub use silhouette::{extract_silhouette, Mask, MaskSizeError, SilhouetteParams};
 pub use simplify::{simplify, simplify_in, simplify_within, Simplification, SimplifyParams, SimplifyStats};
 pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
+pub use topology::{remove_small_handles, HandleRepair};
 pub use voxel_coloring::{
     carve_photo, color_voxels, color_voxels_sweeps, colour_surface, measure_noise, measure_noise_and_colour,
     ordinal_sweeps, reprojection_error, ColouredSurface, OrdinalSweep, PhotoModel, PhotoStats,

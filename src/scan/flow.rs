@@ -17,7 +17,7 @@ use crate::acquisition::{AcquisitionError, AcquisitionSummary, CancelToken, Prog
 use crate::config::Method;
 use crate::devices::Rig;
 use crate::geometry::{CameraModel, VoxelGrid};
-use crate::pipeline::{Mask, Occupancy, PointCloud, TriangleMesh};
+use crate::pipeline::{HandleRepair, Mask, Occupancy, PointCloud, TriangleMesh};
 
 use super::report::{MethodDetails, Timings, VisualHull};
 use super::{ScanError, ScanEvent};
@@ -219,6 +219,8 @@ pub struct Outcome {
     pub solid: Occupancy,
     /// The surface (object frame, metres), with vertex colours where the method gives them.
     pub mesh: TriangleMesh,
+    /// What removing voxel-scale handles before meshing changed (`None` when it did not run).
+    pub mesh_handles: Option<HandleRepair>,
     /// A point cloud (object frame, metres) for `cloud.ply`, from the methods that measure points.
     pub cloud: Option<PointCloud>,
     /// Colours of the solid's occupied voxels in `for_each_occupied` order (photo methods).

@@ -32,6 +32,11 @@ pub struct Report {
     /// What the mesh clean-up removed to leave one watertight component (floating parts, internal
     /// cavities); `mesh_triangles` counts what is left.
     pub mesh_cleanup: crate::pipeline::MeshCleanStats,
+    /// The voxel-scale handles (tunnels through thin walls, bridges over grooves) removed from the
+    /// solid before meshing, and the voxels that took: each handle removed raised the mesh's Euler
+    /// characteristic by 2 (absent for a method that meshes without it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mesh_handles: Option<crate::pipeline::HandleRepair>,
     /// The quadric simplification of the cleaned mesh: error bound, triangles before and after, and
     /// the sampled symmetric Hausdorff distance between the simplified and the unsimplified surface
     /// (absent when `[reconstruction.mesh] max_error_voxels = 0`).

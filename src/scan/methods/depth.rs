@@ -14,7 +14,7 @@ use crate::acquisition::{self, DepthView};
 use crate::config::{DepthCameraConfig, Method, RigConfig, ScanPlan};
 use crate::devices::DepthFrame;
 use crate::geometry::{CameraModel, VoxelGrid};
-use crate::pipeline::{extract_surface, FusionParams, Mask, MeshParams, SpaceCarver, Tsdf};
+use crate::pipeline::{extract_surface_reporting, FusionParams, Mask, MeshParams, SpaceCarver, Tsdf};
 use crate::scan::flow::{Finish, FrameDir, Outcome, PositionView, ScanFlow, Sequence, ViewRecord};
 use crate::scan::report::{MethodDetails, Timings, VisualHull};
 use crate::scan::{ScanError, ScanEvent};
@@ -184,7 +184,8 @@ impl ScanFlow for DepthFlow {
         events(ScanEvent::Stage("mesh"));
         let t = Instant::now();
         let solid = self.tsdf.occupancy();
-        let mut mesh = extract_surface(&solid, &MeshParams::smoothed(self.smooth_radius)).map_err(ScanError::Mesh)?;
+        let (mut mesh, mesh_handles) =
+            extract_surface_reporting(&solid, &MeshParams::smoothed(self.smooth_radius)).map_err(ScanError::Mesh)?;
         let refined_vertices = self.tsdf.refine_vertices(&mut mesh);
         timings.mesh = t.elapsed().as_secs_f64();
         let hull = self.hull.into_occupancy();
@@ -200,6 +201,7 @@ impl ScanFlow for DepthFlow {
             views: self.views.len(),
             solid,
             mesh,
+            mesh_handles,
             cloud: None,
             voxel_colours: None,
             silhouettes: self.views,

@@ -456,6 +456,7 @@ impl ScanFlow for LaserFlow {
             views: self.views,
             solid,
             mesh,
+            mesh_handles: Some(mesh_stats.handles),
             cloud: Some(cloud),
             voxel_colours: None,
             silhouettes: self.silhouettes,

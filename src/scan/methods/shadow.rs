@@ -20,8 +20,8 @@ use crate::acquisition::{self, PerLightView};
 use crate::config::{Method, RigConfig, ScanPlan};
 use crate::geometry::{turntable_rotation, CameraModel, VoxelGrid};
 use crate::pipeline::{
-    detect_shadows, extract_silhouette, extract_surface, Mask, MeshParams, ShadowCarveError, ShadowCarveParams,
-    ShadowCarver, ShadowError, ShadowParams, SilhouetteParams, SpaceCarver,
+    detect_shadows, extract_silhouette, extract_surface_reporting, Mask, MeshParams, ShadowCarveError,
+    ShadowCarveParams, ShadowCarver, ShadowError, ShadowParams, SilhouetteParams, SpaceCarver,
 };
 use crate::scan::flow::{Finish, FrameDir, Outcome, PositionView, ScanFlow, Sequence, ViewRecord};
 use crate::scan::report::{MethodDetails, Timings, VisualHull};
@@ -273,7 +273,8 @@ impl ScanFlow for ShadowFlow {
         tracing::info!(removed, rounds = stats.sweeps, seconds = carve_s, "shadow carving done");
         events(ScanEvent::Stage("mesh"));
         let t = Instant::now();
-        let mesh = extract_surface(&carved, &MeshParams::smoothed(self.smooth_radius)).map_err(ScanError::Mesh)?;
+        let (mesh, mesh_handles) =
+            extract_surface_reporting(&carved, &MeshParams::smoothed(self.smooth_radius)).map_err(ScanError::Mesh)?;
         timings.mesh = t.elapsed().as_secs_f64();
         let hull_summary = VisualHull {
             iou: None,
@@ -288,6 +289,7 @@ impl ScanFlow for ShadowFlow {
             views,
             solid: carved,
             mesh,
+            mesh_handles,
             cloud: None,
             voxel_colours: None,
             silhouettes: self.views,

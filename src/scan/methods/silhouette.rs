@@ -16,7 +16,7 @@ use crate::acquisition::{self, CapturedView};
 use crate::config::{Method, PhotoConfig, RigConfig, ScanPlan};
 use crate::geometry::{CameraModel, VoxelGrid};
 use crate::pipeline::{
-    extract_silhouette, extract_surface, Mask, MeshParams, PhotoView, SilhouetteParams, SpaceCarver,
+    extract_silhouette, extract_surface_reporting, Mask, MeshParams, PhotoView, SilhouetteParams, SpaceCarver,
 };
 
 impl PositionView for CapturedView {
@@ -161,13 +161,14 @@ pub(crate) fn outcome_from_hull(
     if !method.is_photo() {
         events(ScanEvent::Stage("mesh"));
         let t = Instant::now();
-        let mesh =
-            extract_surface(carver.occupancy(), &MeshParams::smoothed(smooth_radius)).map_err(ScanError::Mesh)?;
+        let (mesh, mesh_handles) = extract_surface_reporting(carver.occupancy(), &MeshParams::smoothed(smooth_radius))
+            .map_err(ScanError::Mesh)?;
         timings.mesh = t.elapsed().as_secs_f64();
         return Ok(Outcome {
             views: count,
             solid: carver.into_occupancy(),
             mesh,
+            mesh_handles,
             cloud: None,
             voxel_colours: None,
             silhouettes: views,
@@ -189,7 +190,8 @@ pub(crate) fn outcome_from_hull(
     timings.carve += t.elapsed().as_secs_f64();
     events(ScanEvent::Stage("mesh"));
     let t = Instant::now();
-    let mut mesh = extract_surface(&solid, &MeshParams::smoothed(smooth_radius)).map_err(ScanError::Mesh)?;
+    let (mut mesh, mesh_handles) =
+        extract_surface_reporting(&solid, &MeshParams::smoothed(smooth_radius)).map_err(ScanError::Mesh)?;
     let (mesh_colours, voxel_colours) = outputs.colours(&mesh, &solid);
     mesh.colors = Some(mesh_colours);
     timings.mesh = t.elapsed().as_secs_f64();
@@ -199,6 +201,7 @@ pub(crate) fn outcome_from_hull(
         visual_hull: Some((carver.into_occupancy(), outputs.visual_hull.clone())),
         solid,
         mesh,
+        mesh_handles,
         cloud: None,
         voxel_colours,
         silhouettes: views,

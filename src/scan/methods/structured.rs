@@ -41,8 +41,8 @@ use crate::pipeline::structured_light::{
     PatternSet, ProjectorCoords, ProjectorMap, RangeImage, TriangulateError, TriangulationParams, Triangulator,
 };
 use crate::pipeline::{
-    extract_surface, CarveError, CloudError, DepthFusionError, FusionParams, Mask, MeshParams, PointCloud, SpaceCarver,
-    Tsdf,
+    extract_surface_reporting, CarveError, CloudError, DepthFusionError, FusionParams, Mask, MeshParams, PointCloud,
+    SpaceCarver, Tsdf,
 };
 use crate::scan::flow::{Finish, FrameDir, Outcome, PositionView, ScanFlow, Sequence, ViewRecord};
 use crate::scan::report::{MethodDetails, Timings, VisualHull};
@@ -802,7 +802,8 @@ impl ScanFlow for StructuredLightFlow {
         events(ScanEvent::Stage("mesh"));
         let t = Instant::now();
         let solid = self.tsdf.occupancy();
-        let mut mesh = extract_surface(&solid, &MeshParams::smoothed(self.smooth_radius)).map_err(ScanError::Mesh)?;
+        let (mut mesh, mesh_handles) =
+            extract_surface_reporting(&solid, &MeshParams::smoothed(self.smooth_radius)).map_err(ScanError::Mesh)?;
         summary.refined_vertices = self.tsdf.refine_vertices(&mut mesh);
         timings.mesh = t.elapsed().as_secs_f64();
         let visual_hull = self.hull.map(|h| {
@@ -821,6 +822,7 @@ impl ScanFlow for StructuredLightFlow {
             views,
             solid,
             mesh,
+            mesh_handles,
             cloud: Some(self.cloud),
             voxel_colours: None,
             silhouettes: Vec::new(),
