@@ -2,6 +2,11 @@
 //! written as plain loops over arrays is compiled a second time with AVX2 enabled and taken when the
 //! CPU has it.
 //!
+//! A kernel is compiled the second time either through [`run_simd`] (a closure marked
+//! `#[inline(always)]`: the structured-light triangulator's rows and the phase decoder's bands) or,
+//! where the closure left the loop unvectorised, as a `#[target_feature(enable = "avx2")]` method of
+//! its own (depth fusion's `SlabFusion::fuse_avx2`); both are taken on [`has_avx2`].
+//!
 //! Only AVX2 is enabled, not FMA: the compiler never fuses a multiply and an add on its own, so both
 //! copies round every operation the same and a result does not depend on the CPU that computed it.
 
