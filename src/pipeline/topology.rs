@@ -257,22 +257,45 @@ impl Volume {
         m
     }
 
-    /// Maximum (`max`) or minimum over the 3×3×3 cube around each voxel, out-of-volume values 0.
+    /// Maximum (`max`) or minimum over the 3×3×3 cube around each voxel, out-of-volume values 0:
+    /// one pass per axis, each combining whole rows (along `x`), rows of a slice (along `y`) or
+    /// slices (along `z`) so that the loops run over contiguous bytes, slices in parallel.
     fn cube_filter(&self, src: &[u8], max: bool) -> Vec<u8> {
-        let mut cur = src.to_vec();
-        for axis in 0..3 {
-            let step = self.pitch[axis];
-            let len = self.dims[axis];
-            let mut next = vec![0u8; cur.len()];
-            next.par_iter_mut().enumerate().for_each(|(i, out)| {
-                let c = (i / step) % len;
-                let lo = if c > 0 { cur[i - step] } else { 0 };
-                let hi = if c + 1 < len { cur[i + step] } else { 0 };
-                *out = if max { cur[i].max(lo).max(hi) } else { cur[i].min(lo).min(hi) };
-            });
-            cur = next;
-        }
-        cur
+        let [nx, ny, _] = self.dims;
+        let slab = nx * ny;
+        // `out = op(out, row)`, or `out = op(out, 0)` for a row outside the volume.
+        let fold = |out: &mut [u8], row: Option<&[u8]>| match (row, max) {
+            (Some(r), true) => out.iter_mut().zip(r).for_each(|(o, &v)| *o = (*o).max(v)),
+            (Some(r), false) => out.iter_mut().zip(r).for_each(|(o, &v)| *o = (*o).min(v)),
+            (None, true) => {}
+            (None, false) => out.fill(0),
+        };
+        // Along x, within each row.
+        let mut a = src.to_vec();
+        a.par_chunks_mut(nx).zip(src.par_chunks(nx)).for_each(|(out, row)| {
+            if nx > 1 {
+                fold(&mut out[1..], Some(&row[..nx - 1]));
+                fold(&mut out[..nx - 1], Some(&row[1..]));
+            }
+            fold(&mut out[..1], None);
+            fold(&mut out[nx - 1..], None);
+        });
+        // Along y, within each slice.
+        let mut b = a.clone();
+        b.par_chunks_mut(slab).zip(a.par_chunks(slab)).for_each(|(out, s)| {
+            for (y, o) in out.chunks_mut(nx).enumerate() {
+                fold(o, (y > 0).then(|| &s[(y - 1) * nx..y * nx]));
+                fold(o, (y + 1 < ny).then(|| &s[(y + 1) * nx..(y + 2) * nx]));
+            }
+        });
+        // Along z, across slices.
+        let mut c = b.clone();
+        let slices = b.len() / slab.max(1);
+        c.par_chunks_mut(slab).enumerate().for_each(|(z, o)| {
+            fold(o, (z > 0).then(|| &b[(z - 1) * slab..z * slab]));
+            fold(o, (z + 1 < slices).then(|| &b[(z + 1) * slab..(z + 2) * slab]));
+        });
+        c
     }
 
     fn dilate(&self, src: &[u8]) -> Vec<u8> {
@@ -483,6 +506,36 @@ mod tests {
             }
         }
         out
+    }
+
+    #[test]
+    fn the_cube_filter_is_the_max_and_min_over_each_3x3x3_cube() {
+        // A scattered pattern on an uneven grid (padding included), against the cube taken voxel by
+        // voxel with out-of-volume values 0.
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [0.011, 0.007, 0.005] }, 11);
+        let occ = Occupancy::from_fn(grid, |p| {
+            ((p.x * 9e3) as i64 * 7 + (p.y * 9e3) as i64 * 3 + (p.z * 9e3) as i64) % 5 < 2
+        });
+        let v = Volume::new(&occ);
+        let d = v.dims;
+        assert!(d[0] != d[1] && v.cells.contains(&1) && v.cells.contains(&0), "{d:?}");
+        for max in [true, false] {
+            let got = v.cube_filter(&v.cells, max);
+            for k in 0..d[2] {
+                for j in 0..d[1] {
+                    for i in 0..d[0] {
+                        let mut want = if max { 0 } else { 1 };
+                        for (dk, dj, di) in (0..27).map(|n| (n / 9, n / 3 % 3, n % 3)) {
+                            let (x, y, z) = (i + di, j + dj, k + dk);
+                            let inside = (1..=d[0]).contains(&x) && (1..=d[1]).contains(&y) && (1..=d[2]).contains(&z);
+                            let c = if inside { v.cells[(x - 1) + d[0] * ((y - 1) + d[1] * (z - 1))] } else { 0 };
+                            want = if max { want.max(c) } else { want.min(c) };
+                        }
+                        assert_eq!(got[i + d[0] * (j + d[1] * k)], want, "max {max} at {i} {j} {k}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]
