@@ -160,12 +160,10 @@ pub fn extract_surface_reporting(
     march(&repaired, params).map(|mesh| (mesh, Some(stats)))
 }
 
-/// Marching tetrahedra and relaxation over `occupancy` as it is.
+/// Marching tetrahedra and relaxation over `occupancy` as it is (`smooth_radius` already checked by
+/// the caller).
 fn march(occupancy: &Occupancy, params: &MeshParams) -> Result<TriangleMesh, MeshError> {
     let r = params.smooth_radius;
-    if r > MeshParams::MAX_SMOOTH_RADIUS {
-        return Err(MeshError::SmoothRadius { radius: r, max: MeshParams::MAX_SMOOTH_RADIUS });
-    }
     if occupancy.grid().is_empty() {
         return Ok(TriangleMesh::default());
     }

@@ -328,55 +328,15 @@ struct Geometry<'a> {
 
 impl Geometry<'_> {
     /// The point of camera ray `o + s d` (`d` at unit depth) lit by projector column `c` (and row
-    /// `r` when finite), with its depth.
+    /// `r` when finite), with its depth, for a projector that [`Linear`] does not take (distortion,
+    /// or skew without rows): the distorted column surface by secant steps, or the projector's
+    /// undistorted pixel ray.
     #[inline(always)]
     fn point(&self, d: Vector3<f64>, c: f64, r: f64) -> Option<(Vector3<f64>, f64)> {
-        let (o, k) = (&self.o, &self.projector.intrinsics);
+        let o = &self.o;
+        // The projector without distortion (the column plane, ray-ray) goes through [`Linear`].
         let p = if r.is_nan() {
-            if self.plane {
-                // Column plane `n · x + off = 0` with `n = R^T (1, 0, -xn)`, `off = t_x - xn t_z`.
-                let xn = (c - k.cx) / k.fx;
-                let n = self.pr[0] - self.pr[2] * xn;
-                let den = n.dot(&d);
-                if den.abs() < 1e-12 {
-                    return None;
-                }
-                let s = -(n.dot(o) + self.pt.x - xn * self.pt.z) / den;
-                if !(s.is_finite() && s > 0.0) {
-                    return None;
-                }
-                let p = o + d * s;
-                // In front of the projector.
-                if self.pr[2].dot(&p) + self.pt.z <= 0.0 {
-                    return None;
-                }
-                p
-            } else {
-                ray_column(self.projector, o, &d.normalize(), c)?
-            }
-        } else if self.linear {
-            // The projector ray through (c, r): R^T (xn, yn, 1), not normalised; closest points of
-            // two rays with any positive scales.
-            let yn = (r - k.cy) / k.fy;
-            let xn = (c - k.cx - k.skew * yn) / k.fx;
-            let pd = self.pr[2] + self.pr[0] * xn + self.pr[1] * yn;
-            let w = o - self.po;
-            let (a, b, cc) = (d.dot(&d), d.dot(&pd), pd.dot(&pd));
-            let (dd, e) = (d.dot(&w), pd.dot(&w));
-            let den = a * cc - b * b;
-            if den < 1e-12 * a * cc {
-                return None;
-            }
-            let s = (b * e - cc * dd) / den;
-            let t = (a * e - b * dd) / den;
-            if s <= 0.0 || t <= 0.0 {
-                return None;
-            }
-            let (p1, p2) = (o + d * s, self.po + pd * t);
-            if (p1 - p2).norm_squared() > self.max_gap * self.max_gap {
-                return None;
-            }
-            (p1 + p2) * 0.5
+            ray_column(self.projector, o, &d.normalize(), c)?
         } else {
             let pd = self.projector.pixel_ray(c, r);
             ray_ray(o, &d.normalize(), &self.po, &pd, self.max_gap)?
@@ -650,9 +610,11 @@ impl RowCoords for CoordsRow<'_> {
     }
 }
 
-/// Pass 1 for a projector without distortion, as [`Geometry::point`] computes it but without a
-/// branch per pixel: every pixel of a row is computed and the failed ones masked, so that the
-/// compiler vectorises the row (`f64`, reference frame, metres).
+/// Pass 1 for a projector without distortion: the column plane `n · x + off = 0` with
+/// `n = R^T (1, 0, -xn)`, `off = t_x - xn t_z` (columns only, no skew), or the closest points of the
+/// camera ray and the projector ray `R^T (xn, yn, 1)` (columns and rows), without a branch per
+/// pixel: every pixel of a block is computed and the failed ones masked, so that the compiler
+/// vectorises it (`f64`, reference frame, metres).
 #[derive(Debug, Clone, Copy)]
 struct Linear {
     /// Ray-ray (columns and rows) or the column plane (columns only, no skew).
@@ -666,7 +628,7 @@ struct Linear {
     pt: [f64; 3],
     cx: f64,
     cy: f64,
-    /// `1 / fx`, `1 / fy`: the kernels multiply where [`Geometry::point`] divides.
+    /// `1 / fx`, `1 / fy`: the kernels multiply by them instead of dividing.
     inv_fx: f64,
     inv_fy: f64,
     skew: f64,
@@ -700,7 +662,8 @@ impl Linear {
     }
 
     /// Ray-ray points of one block: `lanes.c`, `lanes.r` and the ray `lanes.d` in, the point, depth
-    /// and whether it holds out ([`Geometry::point`]'s arithmetic, every test folded into the flag).
+    /// and whether it holds out (rays closer than `max_ray_gap_m`, both in front of their centres;
+    /// every test folded into the flag).
     #[inline(always)]
     fn ray_ray_block(&self, lanes: &mut Lanes) {
         let [ox, oy, oz] = self.o;
