@@ -122,16 +122,23 @@ pub fn chamfer_distance(a: &[[f32; 3]], b: &[[f32; 3]]) -> Option<Chamfer> {
 /// area, then a uniform point in it). Deterministic given `seed`. Empty for a mesh without area.
 pub fn sample_mesh(mesh: &TriangleMesh, n: usize, seed: u64) -> Vec<[f32; 3]> {
     let vertex = |i: u32| mesh.vertices.get(i as usize).map(|v| v.map(f64::from));
-    let tris: Vec<[[f64; 3]; 3]> =
-        mesh.triangles.iter().filter_map(|t| Some([vertex(t[0])?, vertex(t[1])?, vertex(t[2])?])).collect();
-    let mut cumulative = Vec::with_capacity(tris.len());
+    let corners = |t: &[u32; 3]| Some([vertex(t[0])?, vertex(t[1])?, vertex(t[2])?]);
+    // A triangle with a corner out of range counts as no area, so it is never picked.
+    let mut cumulative = Vec::with_capacity(mesh.triangles.len());
     let mut total = 0.0f64;
-    for [a, b, c] in &tris {
-        let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
-        let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
-        let x = [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]];
-        let area = 0.5 * (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt();
-        total += if area.is_finite() { area } else { 0.0 };
+    // The last triangle with area: a pick rounded up to the total lands on it.
+    let mut last = 0;
+    for (i, t) in mesh.triangles.iter().enumerate() {
+        if let Some([a, b, c]) = corners(t) {
+            let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+            let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+            let x = [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]];
+            let area = 0.5 * (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt();
+            if area.is_finite() && area > 0.0 {
+                total += area;
+                last = i;
+            }
+        }
         cumulative.push(total);
     }
     if total <= 0.0 {
@@ -147,15 +154,15 @@ pub fn sample_mesh(mesh: &TriangleMesh, n: usize, seed: u64) -> Vec<[f32; 3]> {
         ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
     };
     (0..n)
-        .map(|_| {
+        .filter_map(|_| {
             let pick = next() * total;
-            let t = cumulative.partition_point(|&c| c <= pick).min(tris.len() - 1);
-            let [a, b, c] = tris[t];
+            let t = cumulative.partition_point(|&c| c <= pick).min(last);
+            let [a, b, c] = corners(&mesh.triangles[t])?;
             let (mut r1, mut r2) = (next(), next());
             if r1 + r2 > 1.0 {
                 (r1, r2) = (1.0 - r1, 1.0 - r2);
             }
-            [0, 1, 2].map(|k| (a[k] + r1 * (b[k] - a[k]) + r2 * (c[k] - a[k])) as f32)
+            Some([0, 1, 2].map(|k| (a[k] + r1 * (b[k] - a[k]) + r2 * (c[k] - a[k])) as f32))
         })
         .collect()
 }

@@ -143,12 +143,18 @@ impl<'a> TriangleIndex<'a> {
     }
 
     /// Distance from `q` to the nearest triangle, metres.
+    ///
+    /// The cells are searched in growing shells around `q`'s cell until a triangle is found; every
+    /// triangle nearer than that one has a point inside the box of half-width that distance around
+    /// `q`, and is listed in the cell holding that point, so searching the cells of that box once
+    /// more finds the nearest.
     pub fn distance(&self, q: [f64; 3]) -> f64 {
         let c = self.cell_of(q);
-        let mut best = f64::INFINITY;
-        // Shells of cells around q's cell; after shell r every unvisited cell is at least r cells away.
+        let mut best = Best::new();
         let reach = (0..3).map(|k| (c[k]).abs().max((self.dims[k] - 1 - c[k]).abs())).max().unwrap_or(0);
+        let mut searched = 0;
         for r in 0..=reach {
+            searched = r;
             let lo = [0, 1, 2].map(|k| (c[k] - r).max(0));
             let hi = [0, 1, 2].map(|k| (c[k] + r).min(self.dims[k] - 1));
             for z in lo[2]..=hi[2] {
@@ -161,32 +167,67 @@ impl<'a> TriangleIndex<'a> {
                             x = c[0] + r;
                             continue;
                         }
-                        let i = self.cell_index([x, y, z]);
-                        for &t in &self.items[self.start[i] as usize..self.start[i + 1] as usize] {
-                            let (centre, radius) = self.spheres[t as usize];
-                            let gap = dist2(q, centre).sqrt() - radius;
-                            if gap > 0.0 && gap * gap >= best {
-                                continue;
-                            }
-                            best = best.min(point_triangle_distance2(q, &self.corners[t as usize]));
-                        }
+                        self.search_cell(q, self.cell_index([x, y, z]), &mut best);
                         x += 1;
                     }
                 }
             }
-            // Every cell not yet searched lies beyond the searched block's faces.
-            let margin = (0..3)
-                .map(|k| {
-                    let lo = self.origin[k] + f64::from(c[k] - r) * self.cell;
-                    let hi = self.origin[k] + f64::from(c[k] + r + 1) * self.cell;
-                    (q[k] - lo).min(hi - q[k])
-                })
-                .fold(f64::INFINITY, f64::min);
-            if best.is_finite() && best.sqrt() <= margin {
+            if best.d2.is_finite() {
                 break;
             }
         }
-        best.sqrt()
+        if !best.d2.is_finite() {
+            return f64::INFINITY;
+        }
+        // The box around q of half-width the distance found, less the block of shells searched.
+        let d = best.d;
+        let lo = [0, 1, 2].map(|k| self.cell_of_axis(q[k] - d, k).max(0));
+        let hi = [0, 1, 2].map(|k| self.cell_of_axis(q[k] + d, k).min(self.dims[k] - 1));
+        for z in lo[2]..=hi[2] {
+            for y in lo[1]..=hi[1] {
+                let inner = (z - c[2]).abs() <= searched && (y - c[1]).abs() <= searched;
+                for x in lo[0]..=hi[0] {
+                    if inner && (x - c[0]).abs() <= searched {
+                        continue;
+                    }
+                    self.search_cell(q, self.cell_index([x, y, z]), &mut best);
+                }
+            }
+        }
+        best.d
+    }
+
+    fn cell_of_axis(&self, x: f64, k: usize) -> i32 {
+        ((x - self.origin[k]) / self.cell).floor().clamp(-1e9, 1e9) as i32
+    }
+
+    /// Fold the triangles of cell `i` into `best`, skipping those whose bounding sphere is farther
+    /// than the nearest found.
+    fn search_cell(&self, q: [f64; 3], i: usize, best: &mut Best) {
+        for &t in &self.items[self.start[i] as usize..self.start[i + 1] as usize] {
+            let (centre, radius) = self.spheres[t as usize];
+            let reach = radius + best.d;
+            if dist2(q, centre) >= reach * reach {
+                continue;
+            }
+            let d2 = point_triangle_distance2(q, &self.corners[t as usize]);
+            if d2 < best.d2 {
+                best.d2 = d2;
+                best.d = d2.sqrt();
+            }
+        }
+    }
+}
+
+/// The nearest distance found so far, squared and not, metres.
+struct Best {
+    d2: f64,
+    d: f64,
+}
+
+impl Best {
+    fn new() -> Best {
+        Best { d2: f64::INFINITY, d: f64::INFINITY }
     }
 }
 
@@ -291,6 +332,40 @@ mod tests {
         for (p, d2) in cases {
             assert!((point_triangle_distance2(p, &t) - d2).abs() < 1e-12, "{p:?}");
         }
+    }
+
+    /// The grid search gives the brute-force nearest distance, for points near the surface (where
+    /// the box search decides), inside, and far outside the grid.
+    #[test]
+    fn the_index_finds_the_nearest_triangle() {
+        use crate::geometry::{Aabb, VoxelGrid};
+        use crate::pipeline::{extract_surface, MeshParams, Occupancy};
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-1.0; 3], max: [1.0; 3] }, 24);
+        let occ = Occupancy::from_fn(grid, |p| (p.x / 0.8).powi(2) + (p.y / 0.5).powi(2) + (p.z / 0.6).powi(2) < 1.0);
+        let mesh = extract_surface(&occ, &MeshParams::default()).expect("mesh");
+        let index = TriangleIndex::new(&mesh).expect("triangles");
+        let mut state = 0x2545_F491_4F6C_DD1Du64;
+        let mut next = |scale: f64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 2.0 * scale
+        };
+        let mut near = 0;
+        for i in 0..600 {
+            let scale = [0.05, 1.0, 4.0][i % 3];
+            let v = mesh.vertices[(i * 37) % mesh.vertices.len()].map(f64::from);
+            let q = if i % 3 == 0 { [0, 1, 2].map(|k| v[k] + next(scale)) } else { [0, 1, 2].map(|_| next(scale)) };
+            let brute = mesh
+                .triangles
+                .iter()
+                .map(|t| point_triangle_distance2(q, &t.map(|j| mesh.vertices[j as usize].map(f64::from))))
+                .fold(f64::INFINITY, f64::min)
+                .sqrt();
+            assert!((index.distance(q) - brute).abs() <= 1e-12, "{q:?}: {} vs {brute}", index.distance(q));
+            near += usize::from(brute < 0.05);
+        }
+        assert!(near > 150, "{near} points near the surface");
     }
 
     #[test]
