@@ -163,6 +163,12 @@ fn tsdf(dir: &Path) {
         black_box(fused.occupancy());
     });
     println!("tsdf read-out of the fused solid (Tsdf::occupancy): {:.3} s", readout);
+    let (stored, bricks) = fused.stored_bricks();
+    println!(
+        "tsdf storage: {stored} of {bricks} bricks hold voxels, {:.1} MB (dense value and weight: {:.1} MB)",
+        fused.memory_bytes() as f64 / 1e6,
+        (grid.len() * 8) as f64 / 1e6
+    );
     match run_peer("tsdf_open3d_peer.py", &[dir.join("tsdf.json").to_str().expect("utf-8 path")]) {
         Ok(p) => {
             println!("tsdf: Open3D UniformTSDFVolume {p:.3} s, ratio {:.1}x", p / ours);

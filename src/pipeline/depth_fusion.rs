@@ -86,20 +86,57 @@ pub struct IntegrateStats {
 
 /// A TSDF over an object-frame voxel grid: per voxel a value in [-1, 1] (signed distance over the
 /// truncation distance, positive outside) and a weight (0 = never updated).
+///
+/// Storage follows the surface: the grid is cut into bricks of `BRICK`³ voxels, and only a brick some
+/// view updated voxel by voxel holds its voxels' values and weights. Every other brick is described by
+/// its count of free-space samples alone (its voxels all have value 1 and that many samples' weight, or
+/// none), so a view that settles a brick as a whole writes one counter, and memory grows with the
+/// bricks near the measured surface, not with the volume.
 #[derive(Debug, Clone)]
 pub struct Tsdf {
     grid: VoxelGrid,
     params: FusionParams,
-    /// Per voxel, the fused value as of its brick's last settling (see `pending`).
-    value: Vec<f32>,
-    /// Per voxel, the weight as of its brick's last settling.
-    weight: Vec<f32>,
+    /// Per slab of `BRICK` slices of constant `z`, the voxels of its bricks that hold them.
+    slabs: Vec<SlabStore>,
     /// Per brick of `BRICK`³ voxels (x fastest), free-space samples given to the whole brick and not
     /// yet folded into its voxels: they are folded in, one by one with the same arithmetic, before the
     /// brick is next updated voxel by voxel, and on the fly when a voxel is read.
     pending: Vec<u32>,
     views: usize,
 }
+
+/// The stored bricks of one slab.
+#[derive(Debug, Clone, Default)]
+struct SlabStore {
+    /// Per brick of the slab (x fastest), its index in `values` and `weights`, or `NO_BRICK`.
+    slot: Vec<u32>,
+    /// Per stored brick, each voxel's value as of the brick's last settling, at
+    /// `x + BRICK * (y + BRICK * z)` (brick-local; voxels past the grid's end unused).
+    values: Vec<[f32; BRICK_VOXELS]>,
+    /// The same for the weights.
+    weights: Vec<[f32; BRICK_VOXELS]>,
+}
+
+impl SlabStore {
+    /// Store brick `b`'s voxels, which had none stored.
+    fn insert(&mut self, b: usize, values: &[f32; BRICK_VOXELS], weights: &[f32; BRICK_VOXELS]) {
+        self.slot[b] = self.values.len() as u32;
+        self.values.push(*values);
+        self.weights.push(*weights);
+    }
+
+    /// Brick `b`'s stored values and weights, if it has them.
+    fn brick_mut(&mut self, b: usize) -> Option<(&mut [f32; BRICK_VOXELS], &mut [f32; BRICK_VOXELS])> {
+        let s = self.slot[b];
+        (s != NO_BRICK).then(|| (&mut self.values[s as usize], &mut self.weights[s as usize]))
+    }
+}
+
+/// A brick without stored voxels.
+const NO_BRICK: u32 = u32::MAX;
+
+/// Voxels of a brick.
+const BRICK_VOXELS: usize = BRICK * BRICK * BRICK;
 
 impl Tsdf {
     /// An empty field over `grid` (every voxel unobserved).
@@ -110,9 +147,9 @@ impl Tsdf {
         if grid.is_empty() {
             return Err(DepthFusionError::EmptyGrid);
         }
-        let n = grid.len();
-        let bricks = grid.dims.iter().map(|d| d.div_ceil(BRICK)).product();
-        Ok(Tsdf { grid, params, value: vec![1.0; n], weight: vec![0.0; n], pending: vec![0; bricks], views: 0 })
+        let [nbx, nby, nbz] = grid.dims.map(|d| d.div_ceil(BRICK));
+        let slab = SlabStore { slot: vec![NO_BRICK; nbx * nby], ..SlabStore::default() };
+        Ok(Tsdf { grid, params, slabs: vec![slab; nbz], pending: vec![0; nbx * nby * nbz], views: 0 })
     }
 
     /// The grid.
@@ -125,6 +162,19 @@ impl Tsdf {
         self.views
     }
 
+    /// Bricks of `BRICK`³ voxels that store their voxels (some view updated them voxel by voxel), and
+    /// all bricks of the grid.
+    pub fn stored_bricks(&self) -> (usize, usize) {
+        (self.slabs.iter().map(|s| s.values.len()).sum(), self.pending.len())
+    }
+
+    /// Bytes the field holds: the stored bricks' values and weights, and per brick its slot and its
+    /// pending count.
+    pub fn memory_bytes(&self) -> usize {
+        let (stored, bricks) = self.stored_bricks();
+        stored * BRICK_VOXELS * 2 * std::mem::size_of::<f32>() + bricks * 2 * std::mem::size_of::<u32>()
+    }
+
     /// The fused value of voxel `(i, j, k)` (signed distance / truncation, positive outside) and its
     /// weight (0 = never updated).
     pub fn get(&self, i: usize, j: usize, k: usize) -> (f32, f32) {
@@ -134,10 +184,17 @@ impl Tsdf {
     /// Voxel `(i, j, k)`'s value and weight, with its brick's pending free-space samples folded in.
     #[inline]
     fn voxel(&self, i: usize, j: usize, k: usize) -> (f32, f32) {
-        let idx = self.grid.index(i, j, k);
         let [nbx, nby] = [0, 1].map(|a| self.grid.dims[a].div_ceil(BRICK));
-        let pending = self.pending[i / BRICK + nbx * (j / BRICK + nby * (k / BRICK))];
-        let (mut value, mut weight) = (self.value[idx], self.weight[idx]);
+        let b = i / BRICK + nbx * (j / BRICK);
+        let pending = self.pending[b + nbx * nby * (k / BRICK)];
+        let store = &self.slabs[k / BRICK];
+        let (mut value, mut weight) = match store.slot[b] {
+            NO_BRICK => (1.0, 0.0),
+            s => {
+                let at = i % BRICK + BRICK * (j % BRICK + BRICK * (k % BRICK));
+                (store.values[s as usize][at], store.weights[s as usize][at])
+            }
+        };
         settle(&mut value, &mut weight, pending, self.params.max_weight.max(1.0));
         (value, weight)
     }
@@ -154,12 +211,13 @@ impl Tsdf {
     /// pixel it projects onto is empty or measures a surface more than the truncation behind it) only
     /// counts that sample as pending, without being projected or written; pending samples are folded
     /// into the brick's voxels, in order and with the same arithmetic, before the brick is next
-    /// updated voxel by voxel, and on the fly when a voxel is read. The other voxels go through
-    /// the per-voxel path: slabs of `BRICK` slices run in parallel; within a slab each run of voxels
+    /// updated voxel by voxel, and on the fly when a voxel is read. The other bricks go through
+    /// the per-voxel path: slabs of `BRICK` slices run in parallel; within a brick each row of voxels
     /// along `x` is done in three passes over small buffers: project (camera coordinates are affine in
     /// the voxel index, so a row is `start + i * step`: a few multiply-adds and one reciprocal per voxel
     /// in `f32`, vectorised), look the depth up (the one gather, scalar), and update value and weight
-    /// without branches (vectorised). The result is the same, bit for bit, as projecting every voxel.
+    /// without branches (vectorised). A brick gets stored voxels (see [`Tsdf`]) the first time this
+    /// path updates one of them. The result is the same, bit for bit, as projecting every voxel.
     /// On x86-64 CPUs with AVX2 the same code runs compiled for 256-bit vectors (chosen at run time; the
     /// arithmetic, without fused multiply-adds, rounds the same).
     pub fn integrate(&mut self, camera: &CameraModel, depth_m: &[f32]) -> Result<IntegrateStats, DepthFusionError> {
@@ -202,21 +260,20 @@ impl Tsdf {
         let avx2 = has_avx2();
         let [nx, ny, _] = grid.dims;
         let stats = self
-            .value
-            .par_chunks_mut(nx * ny * BRICK)
-            .zip(self.weight.par_chunks_mut(nx * ny * BRICK))
+            .slabs
+            .par_iter_mut()
             .zip(self.pending.par_chunks_mut(nx.div_ceil(BRICK) * ny.div_ceil(BRICK)))
             .enumerate()
             .map_init(
-                || (RowBuffers::new(nx), Vec::new()),
-                |(buf, bricks), (kb, ((values, weights), pending))| {
-                    let slab = Slab { kb, values, weights, pending };
+                || (RowBuffers::new(nx), Box::new(([1.0; BRICK_VOXELS], [0.0; BRICK_VOXELS]))),
+                |(buf, scratch), (kb, (store, pending))| {
+                    let slab = Slab { kb, store, pending };
                     #[cfg(target_arch = "x86_64")]
                     if avx2 {
                         // SAFETY: the CPU supports AVX2 (checked at run time by `has_avx2`).
-                        return unsafe { slabs.fuse_avx2(slab, buf, bricks) };
+                        return unsafe { slabs.fuse_avx2(slab, buf, scratch) };
                     }
-                    slabs.fuse(slab, buf, bricks)
+                    slabs.fuse(slab, buf, scratch)
                 },
             )
             .reduce(IntegrateStats::default, |a, b| IntegrateStats {
@@ -326,14 +383,13 @@ enum Brick {
     Mixed,
 }
 
-/// One slab of `BRICK` slices of constant `z` (fewer in the last): its values, weights and pending
+/// One slab of `BRICK` slices of constant `z` (fewer in the last): its stored bricks and pending
 /// free-space samples.
 #[derive(Debug)]
 struct Slab<'a> {
     /// The slab's index: slices `kb * BRICK ..`.
     kb: usize,
-    values: &'a mut [f32],
-    weights: &'a mut [f32],
+    store: &'a mut SlabStore,
     /// Per brick of the slab, `x` fastest.
     pending: &'a mut [u32],
 }
@@ -363,20 +419,19 @@ impl SlabFusion<'_> {
     /// The CPU must support AVX2.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    unsafe fn fuse_avx2(&self, slab: Slab<'_>, buf: &mut RowBuffers, bricks: &mut Vec<Brick>) -> IntegrateStats {
-        self.fuse(slab, buf, bricks)
+    unsafe fn fuse_avx2(&self, slab: Slab<'_>, buf: &mut RowBuffers, scratch: &mut Scratch) -> IntegrateStats {
+        self.fuse(slab, buf, scratch)
     }
 
     /// Fuse one slab. A brick given the free-space sample only counts it as pending; a brick done
-    /// voxel by voxel first folds in what it has pending.
+    /// voxel by voxel gets its voxels stored if it had none, and first folds in what it has pending.
     #[inline(always)]
-    fn fuse(&self, slab: Slab<'_>, buf: &mut RowBuffers, bricks: &mut Vec<Brick>) -> IntegrateStats {
-        let Slab { kb, values, weights, pending } = slab;
+    fn fuse(&self, slab: Slab<'_>, buf: &mut RowBuffers, scratch: &mut Scratch) -> IntegrateStats {
+        let Slab { kb, store, pending } = slab;
         let [nx, ny, nz] = self.grid.dims;
         let (nbx, nby) = (nx.div_ceil(BRICK), ny.div_ceil(BRICK));
         let depth = (nz - kb * BRICK).min(BRICK);
         let mut stats = IntegrateStats::default();
-        bricks.clear();
         for jb in 0..nby {
             for ib in 0..nbx {
                 let brick = match self.culler {
@@ -386,61 +441,57 @@ impl SlabFusion<'_> {
                 let b = ib + nbx * jb;
                 let (i0, i1) = (ib * BRICK, ((ib + 1) * BRICK).min(nx));
                 let (j0, j1) = (jb * BRICK, ((jb + 1) * BRICK).min(ny));
-                // Fold in what is pending before a voxel-by-voxel update (or before the count
-                // would overflow).
-                let settle_now = match brick {
-                    Brick::Skip => false,
-                    Brick::Free => pending[b] == u32::MAX,
-                    Brick::Mixed => pending[b] > 0,
-                };
-                if settle_now {
-                    for dk in 0..depth {
-                        for j in j0..j1 {
-                            let at = nx * (j + ny * dk);
-                            let (v, w) = (&mut values[at + i0..at + i1], &mut weights[at + i0..at + i1]);
-                            settle_run(v, w, pending[b], self.update.max_weight);
-                        }
-                    }
-                    pending[b] = 0;
-                }
                 match brick {
                     Brick::Skip => stats.bricks_skipped += 1,
                     Brick::Free => {
                         stats.bricks_free += 1;
                         stats.updated += ((i1 - i0) * (j1 - j0) * depth) as u64;
+                        // Fold in what is pending before the count would overflow.
+                        if pending[b] == u32::MAX {
+                            if store.slot[b] == NO_BRICK {
+                                store.insert(b, &[1.0; BRICK_VOXELS], &[0.0; BRICK_VOXELS]);
+                            }
+                            let (values, weights) = store.brick_mut(b).expect("stored");
+                            settle_run(values, weights, pending[b], self.update.max_weight);
+                            pending[b] = 0;
+                        }
                         pending[b] += 1;
                     }
-                    Brick::Mixed => {}
-                }
-                // What the rows below still have to do: free bricks are done.
-                bricks.push(if brick == Brick::Mixed { Brick::Mixed } else { Brick::Skip });
-            }
-        }
-        for (dk, (values, weights)) in
-            values.chunks_exact_mut(nx * ny).zip(weights.chunks_exact_mut(nx * ny)).enumerate()
-        {
-            let k = kb * BRICK + dk;
-            for (j, (values, weights)) in values.chunks_exact_mut(nx).zip(weights.chunks_exact_mut(nx)).enumerate() {
-                let row = &bricks[j / BRICK * nbx..][..nbx];
-                let mut i0 = 0;
-                while i0 < nx {
-                    // The run of bricks of one kind from voxel `i0`.
-                    let brick = row[i0 / BRICK];
-                    let mut i1 = (i0 / BRICK + 1) * BRICK;
-                    while i1 < nx && row[i1 / BRICK] == brick {
-                        i1 += BRICK;
-                    }
-                    let i1 = i1.min(nx);
-                    let (values, weights) = (&mut values[i0..i1], &mut weights[i0..i1]);
-                    match brick {
-                        Brick::Skip | Brick::Free => {}
-                        Brick::Mixed => {
-                            let (u, n) = self.voxels(j, k, i0..i1, values, weights, buf);
-                            stats.updated += u64::from(u);
-                            stats.near_surface += u64::from(n);
+                    Brick::Mixed => {
+                        // A brick without stored voxels is worked in scratch and stored only if a
+                        // voxel of it was updated (a brick whose rectangle only grazes the
+                        // silhouette often has none).
+                        let stored = store.slot[b] != NO_BRICK;
+                        let (values, weights) = match store.brick_mut(b) {
+                            Some(brick) => brick,
+                            None => {
+                                scratch.0.fill(1.0);
+                                scratch.1.fill(0.0);
+                                (&mut scratch.0, &mut scratch.1)
+                            }
+                        };
+                        if pending[b] > 0 {
+                            settle_run(values, weights, pending[b], self.update.max_weight);
+                        }
+                        let mut updated = 0;
+                        for dk in 0..depth {
+                            for j in j0..j1 {
+                                let at = BRICK * ((j - j0) + BRICK * dk);
+                                let n = i1 - i0;
+                                let (v, w) = (&mut values[at..at + n], &mut weights[at..at + n]);
+                                let (u, near) = self.voxels(j, kb * BRICK + dk, i0..i1, v, w, buf);
+                                updated += u;
+                                stats.near_surface += u64::from(near);
+                            }
+                        }
+                        stats.updated += u64::from(updated);
+                        if stored {
+                            pending[b] = 0;
+                        } else if updated > 0 {
+                            store.insert(b, &scratch.0, &scratch.1);
+                            pending[b] = 0;
                         }
                     }
-                    i0 = i1;
                 }
             }
         }
@@ -674,6 +725,9 @@ struct RowBuffers {
     /// The depth read at each voxel's pixel (`NaN` for none).
     depth: Vec<f32>,
 }
+
+/// Values and weights of a brick without stored voxels, while a view updates it.
+type Scratch = ([f32; BRICK_VOXELS], [f32; BRICK_VOXELS]);
 
 impl RowBuffers {
     fn new(n: usize) -> RowBuffers {
@@ -914,6 +968,29 @@ mod tests {
 
     fn params() -> FusionParams {
         FusionParams { truncation_m: 3.0 * grid().voxel_size, max_weight: 64.0, missing_is_free: true }
+    }
+
+    /// Only the bricks some view updated voxel by voxel store voxels; the rest cost two counters
+    /// each. With dropouts ignored (a real sensor's) the stored bricks are those near the surface and
+    /// those a view cannot settle whole at its tiles' resolution; carving the empty background too
+    /// updates the silhouette's cone of bricks in front of and around the object in every view, so
+    /// more are stored, but not all.
+    #[test]
+    fn storage_follows_the_surface() {
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.08; 3], max: [0.08; 3] }, 96);
+        let dense = grid.len() * 2 * std::mem::size_of::<f32>();
+        for (missing_is_free, at_most) in [(false, 0.4), (true, 0.9)] {
+            let mut tsdf = Tsdf::new(grid, FusionParams { missing_is_free, ..params() }).expect("tsdf");
+            assert_eq!(tsdf.stored_bricks(), (0, 12 * 12 * 12));
+            for i in 0..8 {
+                let cam = camera(45.0 * i as f64);
+                tsdf.integrate(&cam, &sphere_depth(&cam)).expect("integrate");
+            }
+            let (stored, bricks) = tsdf.stored_bricks();
+            assert!(stored > 50 && (stored as f64) < at_most * bricks as f64, "{stored} of {bricks} bricks stored");
+            let bytes = tsdf.memory_bytes() as f64;
+            assert!(bytes < at_most * dense as f64, "{bytes} bytes, dense {dense}");
+        }
     }
 
     #[test]
