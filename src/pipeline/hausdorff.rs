@@ -121,7 +121,12 @@ impl<'a> TriangleIndex<'a> {
     }
 
     fn cell_of(&self, p: [f64; 3]) -> [i32; 3] {
-        [0, 1, 2].map(|k| ((p[k] - self.origin[k]) / self.cell).floor().clamp(-1e9, 1e9) as i32)
+        [0, 1, 2].map(|k| self.cell_of_axis(p[k], k))
+    }
+
+    /// The cell index along axis `k` of coordinate `x` (metres), unclamped to the grid.
+    fn cell_of_axis(&self, x: f64, k: usize) -> i32 {
+        ((x - self.origin[k]) / self.cell).floor().clamp(-1e9, 1e9) as i32
     }
 
     fn cell_index(&self, c: [i32; 3]) -> usize {
@@ -150,7 +155,8 @@ impl<'a> TriangleIndex<'a> {
     /// more finds the nearest.
     pub fn distance(&self, q: [f64; 3]) -> f64 {
         let c = self.cell_of(q);
-        let mut best = Best::new();
+        // The nearest distance found so far, metres.
+        let mut best = f64::INFINITY;
         let reach = (0..3).map(|k| (c[k]).abs().max((self.dims[k] - 1 - c[k]).abs())).max().unwrap_or(0);
         let mut searched = 0;
         for r in 0..=reach {
@@ -172,15 +178,15 @@ impl<'a> TriangleIndex<'a> {
                     }
                 }
             }
-            if best.d2.is_finite() {
+            if best.is_finite() {
                 break;
             }
         }
-        if !best.d2.is_finite() {
+        if !best.is_finite() {
             return f64::INFINITY;
         }
         // The box around q of half-width the distance found, less the block of shells searched.
-        let d = best.d;
+        let d = best;
         let lo = [0, 1, 2].map(|k| self.cell_of_axis(q[k] - d, k).max(0));
         let hi = [0, 1, 2].map(|k| self.cell_of_axis(q[k] + d, k).min(self.dims[k] - 1));
         for z in lo[2]..=hi[2] {
@@ -194,40 +200,23 @@ impl<'a> TriangleIndex<'a> {
                 }
             }
         }
-        best.d
-    }
-
-    fn cell_of_axis(&self, x: f64, k: usize) -> i32 {
-        ((x - self.origin[k]) / self.cell).floor().clamp(-1e9, 1e9) as i32
+        best
     }
 
     /// Fold the triangles of cell `i` into `best`, skipping those whose bounding sphere is farther
     /// than the nearest found.
-    fn search_cell(&self, q: [f64; 3], i: usize, best: &mut Best) {
+    fn search_cell(&self, q: [f64; 3], i: usize, best: &mut f64) {
         for &t in &self.items[self.start[i] as usize..self.start[i + 1] as usize] {
             let (centre, radius) = self.spheres[t as usize];
-            let reach = radius + best.d;
+            let reach = radius + *best;
             if dist2(q, centre) >= reach * reach {
                 continue;
             }
             let d2 = point_triangle_distance2(q, &self.corners[t as usize]);
-            if d2 < best.d2 {
-                best.d2 = d2;
-                best.d = d2.sqrt();
+            if d2 < *best * *best {
+                *best = d2.sqrt();
             }
         }
-    }
-}
-
-/// The nearest distance found so far, squared and not, metres.
-struct Best {
-    d2: f64,
-    d: f64,
-}
-
-impl Best {
-    fn new() -> Best {
-        Best { d2: f64::INFINITY, d: f64::INFINITY }
     }
 }
 
@@ -344,13 +333,8 @@ mod tests {
         let occ = Occupancy::from_fn(grid, |p| (p.x / 0.8).powi(2) + (p.y / 0.5).powi(2) + (p.z / 0.6).powi(2) < 1.0);
         let mesh = extract_surface(&occ, &MeshParams::default()).expect("mesh");
         let index = TriangleIndex::new(&mesh).expect("triangles");
-        let mut state = 0x2545_F491_4F6C_DD1Du64;
-        let mut next = |scale: f64| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 2.0 * scale
-        };
+        let mut rng = crate::sim::rng::SplitMix64::new(7);
+        let mut next = |scale: f64| (rng.next_f64() - 0.5) * 2.0 * scale;
         let mut near = 0;
         for i in 0..600 {
             let scale = [0.05, 1.0, 4.0][i % 3];
