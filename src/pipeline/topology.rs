@@ -288,14 +288,14 @@ impl Volume {
                 fold(o, (y + 1 < ny).then(|| &s[(y + 1) * nx..(y + 2) * nx]));
             }
         });
-        // Along z, across slices.
-        let mut c = b.clone();
+        // Along z, across slices, into the first pass's buffer (no longer needed).
+        a.copy_from_slice(&b);
         let slices = b.len() / slab.max(1);
-        c.par_chunks_mut(slab).enumerate().for_each(|(z, o)| {
+        a.par_chunks_mut(slab).enumerate().for_each(|(z, o)| {
             fold(o, (z > 0).then(|| &b[(z - 1) * slab..z * slab]));
             fold(o, (z + 1 < slices).then(|| &b[(z + 1) * slab..(z + 2) * slab]));
         });
-        c
+        a
     }
 
     fn dilate(&self, src: &[u8]) -> Vec<u8> {
