@@ -27,24 +27,48 @@ pub struct Hausdorff {
 }
 
 /// Nearest-triangle queries over one mesh (module docs): a dense grid of cells, each listing the
-/// triangles whose bounding box reaches it (flat arrays), and the triangles' corners in `f64`.
+/// triangles whose bounding box reaches it (flat arrays). The triangles are stored once each, packed
+/// (corners as the mesh holds them, in `f32`, and a bounding sphere in `f32`: 52 bytes a triangle
+/// where `f64` copies took 104) and ordered by the cell of their centroid, so a cell's triangles sit
+/// close together in memory. Distances are computed in `f64` from those corners, exactly as before.
 #[derive(Debug)]
 pub struct TriangleIndex<'a> {
     mesh: &'a TriangleMesh,
-    /// Corners of the indexed triangles, metres.
-    corners: Vec<[[f64; 3]; 3]>,
-    /// A sphere around each triangle (centre, radius; metres), to skip the exact distance to
-    /// triangles that cannot be nearer than the nearest one found.
-    spheres: Vec<([f64; 3], f64)>,
+    /// The indexed triangles in cell order.
+    tris: Vec<Packed>,
     /// Cell edge, metres.
     cell: f64,
     /// Corner of cell `[0, 0, 0]`, metres.
     origin: [f64; 3],
     /// Cells per axis.
     dims: [i32; 3],
-    /// The triangles of cell `c` are `items[start[c]..start[c + 1]]` (indices into `corners`).
+    /// The triangles of cell `c` are `items[start[c]..start[c + 1]]` (indices into `tris`).
     start: Vec<u32>,
     items: Vec<u32>,
+}
+
+/// One indexed triangle: its corners exactly as the mesh stores them (metres) and a sphere around
+/// it (centre and radius, metres; the radius rounded up so that the sphere holds every point of the
+/// triangle), to skip the exact distance to triangles that cannot be nearer than the nearest found.
+#[derive(Debug, Clone, Copy)]
+struct Packed {
+    corners: [[f32; 3]; 3],
+    centre: [f32; 3],
+    radius: f32,
+}
+
+impl Packed {
+    fn new(corners: [[f32; 3]; 3]) -> Packed {
+        let c = corners.map(|p| p.map(f64::from));
+        let centre = [0, 1, 2].map(|k| ((c[0][k] + c[1][k] + c[2][k]) / 3.0) as f32);
+        let r2 = c.iter().map(|p| dist2(*p, centre.map(f64::from))).fold(0.0, f64::max);
+        // f32 keeps 24 bits: a millionth more rounds to a value at or above the exact radius.
+        Packed { corners, centre, radius: (r2.sqrt() * (1.0 + 1e-6)) as f32 }
+    }
+
+    fn corners(&self) -> [[f64; 3]; 3] {
+        self.corners.map(|p| p.map(f64::from))
+    }
 }
 
 /// Most cells per axis of a [`TriangleIndex`].
@@ -54,21 +78,21 @@ impl<'a> TriangleIndex<'a> {
     /// Index the triangles of `mesh` (those with indices out of range are left out); `None` when none is left.
     pub fn new(mesh: &'a TriangleMesh) -> Option<TriangleIndex<'a>> {
         let n = mesh.vertices.len();
-        let corners: Vec<[[f64; 3]; 3]> = mesh
+        let packed: Vec<Packed> = mesh
             .triangles
             .iter()
             .filter(|t| t.iter().all(|&i| (i as usize) < n))
-            .map(|t| t.map(|i| mesh.vertices[i as usize].map(f64::from)))
+            .map(|t| Packed::new(t.map(|i| mesh.vertices[i as usize])))
             .collect();
-        if corners.is_empty() {
+        if packed.is_empty() {
             return None;
         }
         // Cell edge: twice the mean bounding-box extent of a triangle, so a triangle spans few cells.
         let mut lo = [f64::INFINITY; 3];
         let mut hi = [f64::NEG_INFINITY; 3];
         let mut extent = 0.0;
-        for c in &corners {
-            let (a, b) = bbox(c);
+        for p in &packed {
+            let (a, b) = bbox(&p.corners());
             for k in 0..3 {
                 lo[k] = lo[k].min(a[k]);
                 hi[k] = hi[k].max(b[k]);
@@ -79,22 +103,38 @@ impl<'a> TriangleIndex<'a> {
             return None;
         }
         let span = (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max);
-        let cell = (2.0 * extent / (3 * corners.len()) as f64).max(span / MAX_CELLS_PER_AXIS).max(1e-9);
+        let cell = (2.0 * extent / (3 * packed.len()) as f64).max(span / MAX_CELLS_PER_AXIS).max(1e-9);
         let dims = [0, 1, 2].map(|k| (((hi[k] - lo[k]) / cell).floor() as i32 + 1).max(1));
-        let spheres = corners
+        let mut index =
+            TriangleIndex { mesh, tris: Vec::new(), cell, origin: lo, dims, start: Vec::new(), items: Vec::new() };
+        let cells = dims.iter().map(|&d| d as usize).product::<usize>();
+        // The triangles in the order of their centroid's cell (a counting sort).
+        let home: Vec<usize> = packed
             .iter()
-            .map(|c| {
-                let centre = [0, 1, 2].map(|k| (c[0][k] + c[1][k] + c[2][k]) / 3.0);
-                let r2 = c.iter().map(|p| dist2(*p, centre)).fold(0.0, f64::max);
-                (centre, r2.sqrt())
+            .map(|p| {
+                let c = index.cell_of(p.centre.map(f64::from));
+                index.cell_index([0, 1, 2].map(|k| c[k].clamp(0, dims[k] - 1)))
             })
             .collect();
-        let mut index =
-            TriangleIndex { mesh, corners, spheres, cell, origin: lo, dims, start: Vec::new(), items: Vec::new() };
-        let cells = dims.iter().map(|&d| d as usize).product::<usize>();
         let mut count = vec![0u32; cells + 1];
-        for c in &index.corners {
-            index.for_cells(c, |i| count[i] += 1);
+        for &h in &home {
+            count[h + 1] += 1;
+        }
+        for i in 0..cells {
+            count[i + 1] += count[i];
+        }
+        let mut order = vec![0u32; packed.len()];
+        for (t, &h) in home.iter().enumerate() {
+            order[count[h] as usize] = t as u32;
+            count[h] += 1;
+        }
+        drop(home);
+        index.tris = order.iter().map(|&t| packed[t as usize]).collect();
+        drop(packed);
+        // Each cell's list of the triangles whose bounding box reaches it.
+        count.fill(0);
+        for p in &index.tris {
+            index.for_cells(&p.corners(), |i| count[i] += 1);
         }
         let mut total = 0u32;
         for c in count.iter_mut() {
@@ -104,8 +144,8 @@ impl<'a> TriangleIndex<'a> {
         }
         let mut fill = count.clone();
         let mut items = vec![0u32; total as usize];
-        for (t, c) in index.corners.iter().enumerate() {
-            index.for_cells(c, |i| {
+        for (t, p) in index.tris.iter().enumerate() {
+            index.for_cells(&p.corners(), |i| {
                 items[fill[i] as usize] = t as u32;
                 fill[i] += 1;
             });
@@ -126,7 +166,10 @@ impl<'a> TriangleIndex<'a> {
 
     /// The cell index along axis `k` of coordinate `x` (metres), unclamped to the grid.
     fn cell_of_axis(&self, x: f64, k: usize) -> i32 {
-        ((x - self.origin[k]) / self.cell).floor().clamp(-1e9, 1e9) as i32
+        // `floor` without the library call: truncate, then step down for negative fractions.
+        let f = ((x - self.origin[k]) / self.cell).clamp(-1e9, 1e9);
+        let t = f as i32;
+        t - i32::from(f64::from(t) > f)
     }
 
     fn cell_index(&self, c: [i32; 3]) -> usize {
@@ -207,12 +250,12 @@ impl<'a> TriangleIndex<'a> {
     /// than the nearest found.
     fn search_cell(&self, q: [f64; 3], i: usize, best: &mut f64) {
         for &t in &self.items[self.start[i] as usize..self.start[i + 1] as usize] {
-            let (centre, radius) = self.spheres[t as usize];
-            let reach = radius + *best;
-            if dist2(q, centre) >= reach * reach {
+            let p = &self.tris[t as usize];
+            let reach = f64::from(p.radius) + *best;
+            if dist2(q, p.centre.map(f64::from)) >= reach * reach {
                 continue;
             }
-            let d2 = point_triangle_distance2(q, &self.corners[t as usize]);
+            let d2 = point_triangle_distance2(q, &p.corners());
             if d2 < *best * *best {
                 *best = d2.sqrt();
             }

@@ -30,7 +30,7 @@
 //! is tried first in the next one. Each view's verdict on a cell is sound on its own, so neither the
 //! order of views nor the hint changes the result.
 
-use nalgebra::{Matrix3x4, Vector4};
+use nalgebra::{Matrix3x4, Point2, Vector3, Vector4};
 use rayon::prelude::*;
 
 use super::occupancy::{
@@ -708,18 +708,28 @@ pub fn reproject(occupancy: &Occupancy, boundary: &[[u32; 3]], camera: &CameraMo
     let grid = occupancy.grid();
     let (w, h) = (camera.width as usize, camera.height as usize);
     let mut data = vec![0u8; w * h];
-    let s = grid.voxel_size;
+    let (o, s) = (grid.origin, grid.voxel_size);
+    // The corners are lattice points, so a voxel next along x after the previous one shares that
+    // one's +x face: its four corner images are reused (the boundary comes in rows of bricks).
+    // The images of a voxel's four corners on a face normal to x (behind the camera: `None`).
+    type Face = [Option<Point2<f64>>; 4];
+    let face = |i: u32, j: u32, k: u32| -> Face {
+        let x = o[0] + f64::from(i) * s;
+        [(0, 0), (1, 0), (0, 1), (1, 1)]
+            .map(|(b, c)| camera.project(&Vector3::new(x, o[1] + f64::from(j + b) * s, o[2] + f64::from(k + c) * s)))
+    };
+    let mut previous: Option<([u32; 3], Face)> = None;
     for v in boundary {
-        let c = grid.centre(v[0] as usize, v[1] as usize, v[2] as usize);
+        let near = match previous {
+            Some((p, f)) if p[0].checked_add(1) == Some(v[0]) && p[1..] == v[1..] => f,
+            _ => face(v[0], v[1], v[2]),
+        };
+        let far = face(v[0] + 1, v[1], v[2]);
+        previous = Some((*v, far));
         let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
         let mut ok = true;
-        for n in 0..8 {
-            let p = c + nalgebra::Vector3::new(
-                if n & 1 == 0 { -0.5 } else { 0.5 } * s,
-                if n & 2 == 0 { -0.5 } else { 0.5 } * s,
-                if n & 4 == 0 { -0.5 } else { 0.5 } * s,
-            );
-            match camera.project(&p) {
+        for q in near.iter().chain(&far) {
+            match q {
                 Some(q) => {
                     x0 = x0.min(q.x);
                     x1 = x1.max(q.x);
@@ -742,6 +752,7 @@ pub fn reproject(occupancy: &Occupancy, boundary: &[[u32; 3]], camera: &CameraMo
                 data[vv * w + ua as usize..=vv * w + ub as usize].fill(1);
             }
         }
+        let c = grid.centre(v[0] as usize, v[1] as usize, v[2] as usize);
         if let Some((u, vv)) = camera.pixel_of(&c) {
             data[vv as usize * w + u as usize] = 1;
         }
@@ -754,4 +765,60 @@ pub fn reproject(occupancy: &Occupancy, boundary: &[[u32; 3]], camera: &CameraMo
 pub fn reprojection_iou(occupancy: &Occupancy, views: &[View<'_>]) -> Vec<Option<f64>> {
     let boundary = occupancy.boundary_voxels();
     views.par_iter().map(|v| reproject(occupancy, &boundary, &v.camera).iou(v.mask)).collect()
+}
+
+#[cfg(test)]
+mod reproject_tests {
+    use super::*;
+    use crate::geometry::{Aabb, Intrinsics, Pose};
+
+    /// The shared corner images give exactly the footprints of projecting each voxel's eight
+    /// corners on its own, through a distorting lens.
+    #[test]
+    fn reprojection_shares_corners_without_changing_a_pixel() {
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.05; 3], max: [0.05; 3] }, 40);
+        let solid = Occupancy::from_fn(grid, |p| p.norm() < 0.04 && p.z < 0.025);
+        let camera = CameraModel {
+            intrinsics: Intrinsics::new(900.0, 900.0, 320.0, 240.0).with_distortion([-0.1, 0.01, 1e-3, -2e-3, 0.02]),
+            pose: Pose::look_at(Vector3::new(0.25, -0.3, 0.15), Vector3::zeros(), Vector3::z()),
+            width: 640,
+            height: 480,
+        };
+        let boundary = solid.boundary_voxels();
+        let ours = reproject(&solid, &boundary, &camera);
+        let (o, s) = (grid.origin, grid.voxel_size);
+        let mut reference = vec![false; 640 * 480];
+        for v in &boundary {
+            let corners: Vec<Point2<f64>> = (0..8u32)
+                .map(|n| {
+                    let l = [0, 1, 2].map(|a| f64::from(v[a] + (n >> a & 1)));
+                    camera.project(&Vector3::new(o[0] + l[0] * s, o[1] + l[1] * s, o[2] + l[2] * s)).expect("in front")
+                })
+                .collect();
+            let (x0, x1) =
+                corners.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), q| (a.min(q.x), b.max(q.x)));
+            let (y0, y1) =
+                corners.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), q| (a.min(q.y), b.max(q.y)));
+            let span = |a: f64, b: f64, n: usize| (a.floor().max(0.0) as usize)..(b.ceil().max(0.0) as usize).min(n);
+            for y in span(y0, y1, 480) {
+                for x in span(x0, x1, 640) {
+                    let (u, w) = (x as f64 + 0.5, y as f64 + 0.5);
+                    if (x0..=x1).contains(&u) && (y0..=y1).contains(&w) {
+                        reference[y * 640 + x] = true;
+                    }
+                }
+            }
+            let c = grid.centre(v[0] as usize, v[1] as usize, v[2] as usize);
+            if let Some((u, w)) = camera.pixel_of(&c) {
+                reference[w as usize * 640 + u as usize] = true;
+            }
+        }
+        let set = reference.iter().filter(|&&r| r).count();
+        assert!(set > 5_000, "{set} pixels");
+        let differ = (0..480u32)
+            .flat_map(|y| (0..640u32).map(move |x| (x, y)))
+            .filter(|&(x, y)| ours.get(x, y) != reference[(y * 640 + x) as usize])
+            .count();
+        assert_eq!(differ, 0, "{differ} of {set} pixels differ");
+    }
 }
