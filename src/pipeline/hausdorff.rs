@@ -266,8 +266,6 @@ impl<'a> TriangleIndex<'a> {
 /// The sampled symmetric Hausdorff distance between `a` and `b` (module docs), with `samples` area
 /// samples per surface besides its vertices; `None` when either has no triangle.
 pub fn hausdorff_distance(a: &TriangleMesh, b: &TriangleMesh, samples: usize) -> Option<Hausdorff> {
-    let (ia, ib) = rayon::join(|| TriangleIndex::new(a), || TriangleIndex::new(b));
-    let (ia, ib) = (ia?, ib?);
     let directed = |from: &TriangleMesh, to: &TriangleIndex<'_>, seed: u64| -> (f64, f64, usize) {
         let mut pts: Vec<[f32; 3]> = from.vertices.clone();
         pts.extend(sample_mesh(from, samples, seed));
@@ -275,7 +273,13 @@ pub fn hausdorff_distance(a: &TriangleMesh, b: &TriangleMesh, samples: usize) ->
         let max = d.iter().copied().fold(0.0, f64::max);
         (max, d.iter().sum::<f64>(), d.len())
     };
-    let ((f, fs, fn_), (g, gs, gn)) = rayon::join(|| directed(a, &ib, 11), || directed(b, &ia, 12));
+    // Each direction starts as soon as its target is indexed: while the larger mesh is indexed,
+    // the samples of that mesh are measured against the smaller one.
+    let (to_b, to_a) = rayon::join(
+        || TriangleIndex::new(b).map(|ib| directed(a, &ib, 11)),
+        || TriangleIndex::new(a).map(|ia| directed(b, &ia, 12)),
+    );
+    let ((f, fs, fn_), (g, gs, gn)) = (to_b?, to_a?);
     Some(Hausdorff {
         forward_m: f,
         backward_m: g,
