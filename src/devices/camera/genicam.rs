@@ -36,6 +36,17 @@ fn disconnected(detail: String) -> DeviceError {
     }
 }
 
+/// A setting the camera did not take: an invalid configuration, unless the camera could not be
+/// reached while writing it (a timeout on a busy link), which is a disconnect to retry, not a
+/// setting to fix.
+fn refused(field: &'static str, problem: String, e: &ArvError) -> DeviceError {
+    if e.is_unreachable() {
+        disconnected(format!("{field}: {problem}"))
+    } else {
+        invalid(field, problem)
+    }
+}
+
 /// An Aravis failure while doing `what`: unreachable devices are disconnected, the rest protocol
 /// errors (a feature the camera refuses).
 fn arv_error(what: &str, e: ArvError) -> DeviceError {
@@ -209,13 +220,13 @@ fn connect(config: &GenicamCameraConfig) -> Result<Connection, DeviceError> {
     }
 
     let (w, h) = (config.width as i32, config.height as i32);
-    camera.set_region(0, 0, w, h).map_err(|e| invalid("width", format!("region {w}x{h}: {e}")))?;
+    camera.set_region(0, 0, w, h).map_err(|e| refused("width", format!("region {w}x{h}: {e}"), &e))?;
     let (_, _, gw, gh) = camera.region().map_err(|e| arv_error("reading the region", e))?;
     if (gw, gh) != (w, h) {
         return Err(invalid("width", format!("set the region to {w}x{h}, the camera reads back {gw}x{gh}")));
     }
     let format = config.pixel_format.genicam();
-    camera.set_pixel_format(format).map_err(|e| invalid("pixel_format", format!("{format}: {e}")))?;
+    camera.set_pixel_format(format).map_err(|e| refused("pixel_format", format!("{format}: {e}"), &e))?;
     let got = camera.pixel_format().map_err(|e| arv_error("reading PixelFormat", e))?;
     if got != format {
         return Err(invalid("pixel_format", format!("set {format}, the camera reads back {got}")));
@@ -223,21 +234,21 @@ fn connect(config: &GenicamCameraConfig) -> Result<Connection, DeviceError> {
     camera.set_continuous().map_err(|e| arv_error("AcquisitionMode", e))?;
     // The frame rate first: Aravis turns the frame-start trigger off to set it on some cameras.
     if let Some(fps) = config.fps {
-        camera.set_frame_rate(fps).map_err(|e| invalid("fps", format!("{fps}: {e}")))?;
+        camera.set_frame_rate(fps).map_err(|e| refused("fps", format!("{fps}: {e}"), &e))?;
         let got = camera.frame_rate().map_err(|e| arv_error("reading the frame rate", e))?;
         if !reads_back(fps, got, 0.01) {
             return Err(invalid("fps", format!("set {fps} frames/s, the camera reads back {got}")));
         }
     }
     if let Some(us) = config.exposure_us {
-        camera.set_exposure_us(us).map_err(|e| invalid("exposure_us", format!("{us}: {e}")))?;
+        camera.set_exposure_us(us).map_err(|e| refused("exposure_us", format!("{us}: {e}"), &e))?;
         let got = camera.exposure_us().map_err(|e| arv_error("reading the exposure", e))?;
         if !reads_back(us, got, 1.0) {
             return Err(invalid("exposure_us", format!("set {us} µs, the camera reads back {got}")));
         }
     }
     if let Some(g) = config.gain {
-        camera.set_gain(g).map_err(|e| invalid("gain", format!("{g}: {e}")))?;
+        camera.set_gain(g).map_err(|e| refused("gain", format!("{g}: {e}"), &e))?;
         let got = camera.gain().map_err(|e| arv_error("reading the gain", e))?;
         if !reads_back(g, got, 0.01) {
             return Err(invalid("gain", format!("set {g}, the camera reads back {got}")));
@@ -253,7 +264,7 @@ fn connect(config: &GenicamCameraConfig) -> Result<Connection, DeviceError> {
         }
         camera
             .set_string(write.feature, &write.value)
-            .map_err(|e| invalid("trigger", format!("{} = {}: {e}", write.feature, write.value)))?;
+            .map_err(|e| refused("trigger", format!("{} = {}: {e}", write.feature, write.value), &e))?;
         let got = camera.string(write.feature).map_err(|e| arv_error(write.feature, e))?;
         if got != write.value {
             return Err(invalid(
@@ -274,7 +285,7 @@ fn connect(config: &GenicamCameraConfig) -> Result<Connection, DeviceError> {
         let f = feature.ok_or_else(|| {
             invalid("trigger_delay_us", format!("the camera has none of the features {}", DELAY_FEATURES.join(", ")))
         })?;
-        camera.set_float(f, d).map_err(|e| invalid("trigger_delay_us", format!("{f} = {d}: {e}")))?;
+        camera.set_float(f, d).map_err(|e| refused("trigger_delay_us", format!("{f} = {d}: {e}"), &e))?;
         let got = camera.float(f).map_err(|e| arv_error(f, e))?;
         if !reads_back(d, got, 1.0) {
             return Err(invalid("trigger_delay_us", format!("set {f} = {d}, the camera reads back {got}")));
@@ -590,5 +601,24 @@ impl Drop for GenicamCamera {
             reconnects = self.reconnects,
             "GenICam camera closed"
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::devices::ErrorKind;
+
+    /// A setting the camera refuses is a configuration to fix; one it could not be reached for
+    /// (`ArvDeviceError` timeout) is a disconnect the daemon retries.
+    #[test]
+    fn a_setting_lost_to_a_timeout_is_retried_not_failed() {
+        let timeout = ArvError { device_domain: true, code: 5, message: "timeout".into() };
+        let e = refused("width", "region 640x480: timeout".into(), &timeout);
+        assert_eq!(e.kind(), ErrorKind::Disconnected, "{e}");
+        let refusal = ArvError { device_domain: false, code: 3, message: "out of range".into() };
+        let e = refused("width", "region 99999x480: out of range".into(), &refusal);
+        assert_eq!(e.kind(), ErrorKind::InvalidConfig, "{e}");
+        assert!(e.to_string().contains("width"), "{e}");
     }
 }
