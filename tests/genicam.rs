@@ -443,6 +443,20 @@ fn device(c: &scanrig::service::client::Client, name: &str) -> (String, u64, Str
     )
 }
 
+/// Wait until the daemon shows the camera connected, at most `limit` after `since`; on timeout the
+/// panic gives the camera's state and the daemon's log.
+fn wait_connected(c: &scanrig::service::client::Client, d: &daemon_common::Daemon, since: Instant, limit: Duration) {
+    while device(c, "camera").0 != "connected" {
+        assert!(
+            since.elapsed() < limit,
+            "the camera was not connected {limit:?} on: {:?}\n{}",
+            device(c, "camera"),
+            d.log()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 #[test]
 fn the_daemon_fails_a_scan_when_the_camera_vanishes_and_reconnects_it_when_it_returns() {
     if !private_network("the_daemon_fails_a_scan_when_the_camera_vanishes_and_reconnects_it_when_it_returns") {
@@ -456,16 +470,7 @@ fn the_daemon_fails_a_scan_when_the_camera_vanishes_and_reconnects_it_when_it_re
     // The first connection: the fake camera is bound, but on a loaded machine (two of these tests
     // run at once, each with its camera and daemon) the daemon's first attempts may fail and back off
     // (up to 8 s apart). Say what the daemon logged if it never connects.
-    let t = Instant::now();
-    while device(&c, "camera").0 != "connected" {
-        assert!(
-            t.elapsed() < Duration::from_secs(60),
-            "the camera did not connect in 60 s: {:?}\n{}",
-            device(&c, "camera"),
-            d.log()
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    wait_connected(&c, &d, Instant::now(), Duration::from_secs(60));
 
     let id =
         c.post_json("/api/v1/scans", &serde_json::json!({})).expect("start")["id"].as_str().expect("id").to_owned();
@@ -511,15 +516,7 @@ fn the_daemon_fails_a_scan_when_the_camera_vanishes_and_reconnects_it_when_it_re
     let returned = Instant::now();
     // One reconnection attempt waits up to 8 s of backoff plus a discovery that finds nothing until
     // the camera answers: 13 s on an idle machine, more when two of these tests share two cores.
-    while device(&c, "camera").0 != "connected" {
-        assert!(
-            returned.elapsed() < Duration::from_secs(90),
-            "the camera did not reconnect in 90 s: {:?}\n{}",
-            device(&c, "camera"),
-            d.log()
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    wait_connected(&c, &d, returned, Duration::from_secs(90));
     println!("reconnected {:.1} s after the camera returned", returned.elapsed().as_secs_f64());
     let (_, reconnects, last_error) = device(&c, "camera");
     assert_eq!((reconnects, last_error.as_str()), (1, ""));
