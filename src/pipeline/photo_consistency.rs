@@ -522,28 +522,43 @@ impl VoxelCamera {
         Some(Footprint { depth, x0, x1, y0, y1 })
     }
 
-    /// Per pixel (row-major), whether a footprint of one of `voxels` covers it the way
-    /// [`super::space_carving::reproject`] splats voxels: the pixels whose centres lie in the
-    /// bounding rectangle of the voxel's projected corners, and always the pixel its centre falls
-    /// in; voxels with a corner behind the camera cover nothing. Computed in `f32`.
-    pub(crate) fn cover(&self, voxels: &[[u32; 3]]) -> Vec<bool> {
+    /// The pixels voxel `v` covers the way [`super::space_carving::reproject`] splats voxels: the
+    /// inclusive pixel rectangle `[x0, x1] x [y0, y1]` whose centres lie in the bounding rectangle
+    /// of the voxel's projected corners (when any does), and the pixel its centre falls in (when it
+    /// is on the image); nothing when a corner is behind the camera. Computed in `f32`.
+    #[inline]
+    fn cover_of(&self, v: [u32; 3]) -> (Option<[usize; 4]>, Option<(usize, usize)>) {
         let (w, h) = (self.width, self.height);
-        let mut out = vec![false; w * h];
+        let Some((_, uc, vc, [u0, u1, v0, v1])) = self.cube_rect(v, 0.5) else { return (None, None) };
+        if !(u0.is_finite() && u1.is_finite() && v0.is_finite() && v1.is_finite()) {
+            return (None, None);
+        }
+        let ua = (u0 - 0.5).ceil().max(0.0);
+        let ub = (u1 - 0.5).floor().min(w as f32 - 1.0);
+        let va = (v0 - 0.5).ceil().max(0.0);
+        let vb = (v1 - 0.5).floor().min(h as f32 - 1.0);
+        let rect = (ua <= ub && va <= vb).then_some([ua as usize, ub as usize, va as usize, vb as usize]);
+        (rect, self.pixel(uc.floor(), vc.floor()))
+    }
+
+    /// Whether voxel `v` covers pixel `(x, y)` (as [`Self::cover`] counts it).
+    pub(crate) fn covers(&self, v: [u32; 3], x: usize, y: usize) -> bool {
+        let (rect, centre) = self.cover_of(v);
+        rect.is_some_and(|[x0, x1, y0, y1]| (x0..=x1).contains(&x) && (y0..=y1).contains(&y)) || centre == Some((x, y))
+    }
+
+    /// Per pixel (row-major), whether one of `voxels` covers it (see [`Self::covers`]).
+    pub(crate) fn cover(&self, voxels: &[[u32; 3]]) -> Vec<bool> {
+        let w = self.width;
+        let mut out = vec![false; w * self.height];
         for &v in voxels {
-            let Some((_, uc, vc, [u0, u1, v0, v1])) = self.cube_rect(v, 0.5) else { continue };
-            if !(u0.is_finite() && u1.is_finite() && v0.is_finite() && v1.is_finite()) {
-                continue;
-            }
-            let ua = (u0 - 0.5).ceil().max(0.0);
-            let ub = (u1 - 0.5).floor().min(w as f32 - 1.0);
-            let va = (v0 - 0.5).ceil().max(0.0);
-            let vb = (v1 - 0.5).floor().min(h as f32 - 1.0);
-            if ua <= ub && va <= vb {
-                for y in va as usize..=vb as usize {
-                    out[y * w + ua as usize..=y * w + ub as usize].fill(true);
+            let (rect, centre) = self.cover_of(v);
+            if let Some([x0, x1, y0, y1]) = rect {
+                for y in y0..=y1 {
+                    out[y * w + x0..=y * w + x1].fill(true);
                 }
             }
-            if let Some((x, y)) = self.pixel(uc.floor(), vc.floor()) {
+            if let Some((x, y)) = centre {
                 out[y * w + x] = true;
             }
         }

@@ -257,9 +257,9 @@ pub fn carve_photo_surface(
             dense.clear(v);
         }
     }
-    stats.carved -= restore_silhouettes(start, &mut dense, views);
+    let (restored, surface, reprojection_error) = restore_and_colour(start, &mut dense, &cams, &pixels, views, params);
+    stats.carved -= restored;
     let occupancy = dense.to_occupancy(grid);
-    let (surface, reprojection_error) = colour_dense_with_error(&dense, &cams, &pixels, views, params);
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
 }
@@ -735,7 +735,8 @@ pub fn color_voxels_sweeps(
     for sweep in &sweeps {
         let used: Vec<PhotoView<'_>> = sweep.views.iter().map(|&n| views[n]).collect();
         let used_pixels: Vec<ViewPixels<'_>> = sweep.views.iter().map(|&n| pixels[n].clone()).collect();
-        let (dense, s) = layered::color_along(&occupancy, &used, &used_pixels, params, sweep.direction);
+        let (mut dense, mut s) = layered::color_along(&occupancy, &used, &used_pixels, params, sweep.direction);
+        s.carved -= restore_silhouettes(&occupancy, &occupancy.boundary_voxels(), &mut dense, &used, None);
         tracing::debug!(direction = ?sweep.direction, views = used.len(), carved = s.carved, "voxel colouring sweep");
         stats.iterations += s.iterations;
         stats.visits += s.visits;
@@ -744,10 +745,10 @@ pub fn color_voxels_sweeps(
         occupancy = dense.to_occupancy(grid);
     }
     let mut dense = Dense::from(&occupancy);
-    stats.carved -= restore_silhouettes(start, &mut dense, views);
-    let occupancy = dense.to_occupancy(grid);
     let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
-    let (surface, reprojection_error) = colour_dense_with_error(&dense, &cams, &pixels, views, params);
+    let (restored, surface, reprojection_error) = restore_and_colour(start, &mut dense, &cams, &pixels, views, params);
+    stats.carved -= restored;
+    let occupancy = dense.to_occupancy(grid);
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
 }
@@ -838,11 +839,18 @@ pub fn color_voxels_every_voxel(
         }
         start_idx = end;
     }
-    stats.carved -= restore_silhouettes(start, &mut dense, views);
+    let (restored, surface, reprojection_error) = restore_and_colour(start, &mut dense, &cams, &pixels, views, params);
+    stats.carved -= restored;
     let occupancy = dense.to_occupancy(grid);
-    let (surface, reprojection_error) = colour_dense_with_error(&dense, &cams, &pixels, views, params);
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
+}
+
+/// What a carver knows of its result's surface in each view: per pixel (row-major) the surface
+/// voxel seen there, as an index into `voxels` or [`ItemBuffer::NONE`]; `ids` follows the views.
+pub(super) struct SeenBy<'a> {
+    pub(super) ids: Vec<&'a [u32]>,
+    pub(super) voxels: &'a [[u32; 3]],
 }
 
 /// Give back carved voxels of `start` where the result's silhouette lost pixels: in each view with
@@ -853,28 +861,31 @@ pub fn color_voxels_every_voxel(
 /// pixels came from its boundary voxels, which are either still there or restored, the result's
 /// silhouettes then cover every in-mask pixel the start's did, and cover nothing the start's did
 /// not: its re-projection IoU is at least the start's. Returns the voxels restored.
-fn restore_silhouettes(start: &Occupancy, dense: &mut Dense, views: &[PhotoView<'_>]) -> u64 {
+///
+/// Only the start's boundary voxels that were carved can lose pixels: one still occupied is still
+/// on the boundary (carving only empties its neighbours) and covers what it covered. So only their
+/// pixels are candidates, and a candidate covered by the voxel `seen` names there (the result's
+/// surface as it is on entry) is not lost; the whole surface is splatted only in the views where
+/// a candidate is left. Either way the lost pixels are exactly those above. `start_boundary` lists
+/// the start's boundary voxels (`Occupancy::boundary_voxels`, in any order).
+fn restore_silhouettes(
+    start: &Occupancy,
+    start_boundary: &[[u32; 3]],
+    dense: &mut Dense,
+    views: &[PhotoView<'_>],
+    mut seen: Option<SeenBy<'_>>,
+) -> u64 {
     let grid = *start.grid();
-    let masked: Vec<&PhotoView<'_>> = views.iter().filter(|v| v.mask.is_some()).collect();
+    let masked: Vec<usize> = (0..views.len()).filter(|&n| views[n].mask.is_some()).collect();
     if masked.is_empty() {
         return 0;
     }
-    let cams: Vec<VoxelCamera> = masked.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
-    let start_boundary = start.boundary_voxels();
-    let start_cover: Vec<Vec<bool>> = cams.par_iter().map(|c| c.cover(&start_boundary)).collect();
+    let cams: Vec<VoxelCamera> = masked.iter().map(|&n| VoxelCamera::new(&views[n].camera, &grid)).collect();
     let mut restored = 0u64;
     for _ in 0..4 {
-        let boundary = dense.surface();
-        let lost: Vec<Vec<bool>> = masked
-            .par_iter()
-            .zip(&cams)
-            .zip(&start_cover)
-            .map(|((v, cam), cover)| {
-                let now = cam.cover(&boundary);
-                let m = v.mask.expect("masked views only").data();
-                (0..now.len()).map(|p| m[p] != 0 && cover[p] && !now[p]).collect()
-            })
-            .collect();
+        let lost = lost_pixels(start_boundary, dense, views, &masked, &cams, seen.as_ref());
+        // The surface has changed once a voxel is restored.
+        seen = None;
         if lost.iter().all(|l| !l.iter().any(|&b| b)) {
             break;
         }
@@ -906,6 +917,51 @@ fn restore_silhouettes(start: &Occupancy, dense: &mut Dense, views: &[PhotoView<
     restored
 }
 
+/// Per masked view (`masked` indexes `views`, `cams` follows it), per pixel: inside the mask,
+/// covered by the start's boundary voxels and not by `dense`'s surface voxels (see
+/// [`restore_silhouettes`], which also says why only the carved boundary voxels are splatted and
+/// what `seen`, describing `dense`'s surface, saves).
+fn lost_pixels(
+    start_boundary: &[[u32; 3]],
+    dense: &Dense,
+    views: &[PhotoView<'_>],
+    masked: &[usize],
+    cams: &[VoxelCamera],
+    seen: Option<&SeenBy<'_>>,
+) -> Vec<Vec<bool>> {
+    let gone: Vec<[u32; 3]> =
+        start_boundary.iter().copied().filter(|v| !dense.get(v[0] as i64, v[1] as i64, v[2] as i64)).collect();
+    let mut lost: Vec<Vec<bool>> = masked
+        .par_iter()
+        .zip(cams)
+        .map(|(&n, cam)| {
+            let m = views[n].mask.expect("masked views only").data();
+            let mut lost = cam.cover(&gone);
+            for (l, &m) in lost.iter_mut().zip(m) {
+                *l &= m != 0;
+            }
+            if let Some(seen) = seen {
+                for (p, l) in lost.iter_mut().enumerate().filter(|(_, l)| **l) {
+                    let s = seen.ids[n][p];
+                    if s != ItemBuffer::NONE && cam.covers(seen.voxels[s as usize], p % cam.width, p / cam.width) {
+                        *l = false;
+                    }
+                }
+            }
+            lost
+        })
+        .collect();
+    if lost.iter().any(|l| l.iter().any(|&b| b)) {
+        let boundary = dense.surface();
+        lost.par_iter_mut().zip(cams).filter(|(l, _)| l.iter().any(|&b| b)).for_each(|(l, cam)| {
+            for (l, now) in l.iter_mut().zip(cam.cover(&boundary)) {
+                *l &= !now;
+            }
+        });
+    }
+    lost
+}
+
 fn colour_dense(
     dense: &Dense,
     cams: &[VoxelCamera],
@@ -925,6 +981,18 @@ fn colour_dense_buffers(
 ) -> (ColouredSurface, Vec<ItemBuffer>) {
     let voxels = dense.surface();
     let buffers = render_item_buffers(cams, &voxels);
+    colour_buffers(dense, cams, pixels, params, voxels, buffers)
+}
+
+/// [`colour_dense_buffers`] with `dense`'s surface voxels and their item buffers given.
+fn colour_buffers(
+    dense: &Dense,
+    cams: &[VoxelCamera],
+    pixels: &[ViewPixels<'_>],
+    params: &PhotoParams,
+    voxels: Vec<[u32; 3]>,
+    buffers: Vec<ItemBuffer>,
+) -> (ColouredSurface, Vec<ItemBuffer>) {
     let occ = |i, j, k| dense.get(i, j, k);
     let colours: Vec<([u8; 3], bool)> = voxels
         .par_iter()
@@ -954,8 +1022,34 @@ fn colour_dense_with_error(
 ) -> (ColouredSurface, f64) {
     let (surface, buffers) = colour_dense_buffers(dense, cams, pixels, params);
     let ids: Vec<&[u32]> = buffers.iter().map(ItemBuffer::ids).collect();
-    let error = reprojection_error_in(&surface, views, &ids);
+    let error = reprojection_error_in(&surface.colours, views, &ids);
     (surface, error)
+}
+
+/// [`restore_silhouettes`] on `dense` (carved from `start`), then the coloured surface and its
+/// re-projection error ([`colour_dense_with_error`]). The item buffers of the carved surface are
+/// rendered once: they tell the restoration which pixels that surface still covers, and when
+/// nothing is restored they are the colouring's too. Returns the voxels restored as well.
+fn restore_and_colour(
+    start: &Occupancy,
+    dense: &mut Dense,
+    cams: &[VoxelCamera],
+    pixels: &[ViewPixels<'_>],
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+) -> (u64, ColouredSurface, f64) {
+    let voxels = dense.surface();
+    let buffers = render_item_buffers(cams, &voxels);
+    let seen = SeenBy { ids: buffers.iter().map(ItemBuffer::ids).collect(), voxels: &voxels };
+    let restored = restore_silhouettes(start, &start.boundary_voxels(), dense, views, Some(seen));
+    if restored > 0 {
+        let (surface, error) = colour_dense_with_error(dense, cams, pixels, views, params);
+        return (restored, surface, error);
+    }
+    let (surface, buffers) = colour_buffers(dense, cams, pixels, params, voxels, buffers);
+    let ids: Vec<&[u32]> = buffers.iter().map(ItemBuffer::ids).collect();
+    let error = reprojection_error_in(&surface.colours, views, &ids);
+    (0, surface, error)
 }
 
 /// Colour the surface of `occupancy` from `views` the way the photo methods colour their results
@@ -983,19 +1077,19 @@ pub fn reprojection_error(grid: &VoxelGrid, surface: &ColouredSurface, views: &[
             return (0.0, 0);
         }
         let buf = ItemBuffer::render(&VoxelCamera::new(&view.camera, grid), &surface.voxels);
-        view_error(surface, view, buf.ids())
+        view_error(&surface.colours, view, buf.ids())
     }))
 }
 
-/// [`reprojection_error`] with each view's item buffer of `surface.voxels` given: `ids[n]` holds,
-/// per pixel of view `n` (row-major), the index into `surface.voxels` of the voxel seen there or
-/// [`ItemBuffer::NONE`].
-fn reprojection_error_in(surface: &ColouredSurface, views: &[PhotoView<'_>], ids: &[&[u32]]) -> f64 {
+/// [`reprojection_error`] with each view's item buffer of the surface given: `ids[n]` holds, per
+/// pixel of view `n` (row-major), the index into `colours` of the colour of the voxel seen there
+/// or [`ItemBuffer::NONE`].
+fn reprojection_error_in(colours: &[[u8; 3]], views: &[PhotoView<'_>], ids: &[&[u32]]) -> f64 {
     mean_error(views.par_iter().zip(ids).map(|(view, ids)| {
         if view.image.dimensions() != (view.camera.width, view.camera.height) {
             return (0.0, 0);
         }
-        view_error(surface, view, ids)
+        view_error(colours, view, ids)
     }))
 }
 
@@ -1009,9 +1103,10 @@ fn mean_error(per_view: impl ParallelIterator<Item = (f64, u64)>) -> f64 {
     }
 }
 
-/// One view's sum of absolute differences (8-bit levels) between its image and `surface` painted
-/// through item buffer `ids` (see [`reprojection_error_in`]), and the number of values summed.
-fn view_error(surface: &ColouredSurface, view: &PhotoView<'_>, ids: &[u32]) -> (f64, u64) {
+/// One view's sum of absolute differences (8-bit levels) between its image and the surface painted
+/// with `colours` through item buffer `ids` (see [`reprojection_error_in`]), and the number of
+/// values summed.
+fn view_error(colours: &[[u8; 3]], view: &PhotoView<'_>, ids: &[u32]) -> (f64, u64) {
     let (w, h) = (view.camera.width as usize, view.camera.height as usize);
     let img = view.image.as_raw();
     let (mut sum, mut n) = (0f64, 0u64);
@@ -1022,7 +1117,7 @@ fn view_error(surface: &ColouredSurface, view: &PhotoView<'_>, ids: &[u32]) -> (
             if id == ItemBuffer::NONE && !inside {
                 continue;
             }
-            let model = surface.colours.get(id as usize).copied().unwrap_or([0, 0, 0]);
+            let model = colours.get(id as usize).copied().unwrap_or([0, 0, 0]);
             let p = 3 * (y * w + x);
             for c in 0..3 {
                 sum += (img[p + c] as f64 - model[c] as f64).abs();
@@ -1293,6 +1388,70 @@ mod tests {
             let want = reprojection_error(&grid(), &m.surface, &views);
             assert!(close(m.reprojection_error, want), "{} vs {want}", m.reprojection_error);
         }
+    }
+
+    #[test]
+    fn lost_pixels_are_the_starts_cover_the_surface_misses_with_or_without_item_buffers() {
+        use crate::pipeline::silhouette::Mask;
+        let (_, hull) = scene();
+        let g = grid();
+        // Near and far cameras: far ones see a voxel as about a pixel, where a footprint and a
+        // cover differ most.
+        let cams: Vec<CameraModel> = (0..8)
+            .map(|n| {
+                let mut c = camera(n as f64 * 45.0 + 10.0, 20.0 + 5.0 * n as f64);
+                if n % 2 == 1 {
+                    c.intrinsics.fx = 110.0;
+                    c.intrinsics.fy = 110.0;
+                }
+                c
+            })
+            .collect();
+        let vcams: Vec<VoxelCamera> = cams.iter().map(|c| VoxelCamera::new(c, &g)).collect();
+        let start_boundary = hull.boundary_voxels();
+        // Masks: the start's own silhouettes, so every pixel only a carved voxel covered is lost.
+        let masks: Vec<Mask> = vcams
+            .iter()
+            .map(|vc| {
+                let cover = vc.cover(&start_boundary);
+                Mask::from_fn(160, 160, |x, y| cover[y as usize * 160 + x as usize])
+            })
+            .collect();
+        let images = vec![RgbImage::new(160, 160); cams.len()];
+        let views: Vec<PhotoView<'_>> =
+            (0..cams.len()).map(|n| PhotoView { camera: cams[n], image: &images[n], mask: Some(&masks[n]) }).collect();
+        // The pit carved, and a column and a slanted slice of the block's side.
+        let result = Occupancy::from_index_fn(g, |i, j, k| {
+            in_block(i, j, k) && !in_pit(i, j, k) && !(i >= 17 && j >= 16) && i + k < 30
+        });
+        let dense = Dense::from(&result);
+        let surface = dense.surface();
+        let buffers = render_item_buffers(&vcams, &surface);
+        let seen = SeenBy { ids: buffers.iter().map(ItemBuffer::ids).collect(), voxels: &surface };
+        let masked: Vec<usize> = (0..views.len()).collect();
+        let with = lost_pixels(&start_boundary, &dense, &views, &masked, &vcams, Some(&seen));
+        let without = lost_pixels(&start_boundary, &dense, &views, &masked, &vcams, None);
+        // Item buffers that name the wrong voxel everywhere save nothing but change nothing either:
+        // a pixel counts as covered only when the voxel named there covers it.
+        let first = vec![0u32; 160 * 160];
+        let wrong = SeenBy { ids: vec![first.as_slice(); cams.len()], voxels: &surface };
+        let misled = lost_pixels(&start_boundary, &dense, &views, &masked, &vcams, Some(&wrong));
+        let mut lost = 0;
+        for (n, cam) in vcams.iter().enumerate() {
+            let (before, after) = (cam.cover(&start_boundary), cam.cover(&surface));
+            let m = masks[n].data();
+            let want: Vec<bool> = (0..before.len()).map(|p| m[p] != 0 && before[p] && !after[p]).collect();
+            assert_eq!(with[n], want, "view {n}, with item buffers");
+            assert_eq!(without[n], want, "view {n}, without");
+            assert_eq!(misled[n], want, "view {n}, with wrong item buffers");
+            lost += want.iter().filter(|&&b| b).count();
+        }
+        assert!(lost > 100, "the carved side loses pixels: {lost}");
+        // Restoring gives every one of them back.
+        let mut restored = Dense::from(&result);
+        assert!(restore_silhouettes(&hull, &start_boundary, &mut restored, &views, Some(seen)) > 0);
+        let left = lost_pixels(&start_boundary, &restored, &views, &masked, &vcams, None);
+        assert!(left.iter().flatten().all(|&b| !b));
     }
 
     #[test]

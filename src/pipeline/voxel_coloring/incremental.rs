@@ -24,7 +24,7 @@
 
 use rayon::prelude::*;
 
-use super::{restore_silhouettes, ColouredSurface, Dense, PhotoModel, PhotoStats, OCCUPIED};
+use super::{restore_silhouettes, ColouredSurface, Dense, PhotoModel, PhotoStats, SeenBy, OCCUPIED};
 use crate::geometry::VoxelGrid;
 use crate::pipeline::occupancy::Occupancy;
 use crate::pipeline::photo_consistency::{
@@ -285,6 +285,8 @@ struct Carver<'a> {
     lins: Vec<u32>,
     live: Vec<bool>,
     states: Vec<ViewState>,
+    /// Slots given to the start's surface (the first ones).
+    start_slots: usize,
 }
 
 impl<'a> Carver<'a> {
@@ -300,9 +302,11 @@ impl<'a> Carver<'a> {
             lins: Vec::new(),
             live: Vec::new(),
             states,
+            start_slots: 0,
         };
         let surface = c.dense.surface();
         c.add(&surface);
+        c.start_slots = surface.len();
         let all: Vec<u32> = (0..c.voxels.len() as u32).collect();
         let lins = &c.lins;
         c.states.par_iter_mut().zip(&c.pixels).for_each(|(st, px)| {
@@ -410,7 +414,9 @@ impl<'a> Carver<'a> {
         (0..flagged.len() as u32).filter(|&s| flagged[s as usize]).collect()
     }
 
-    fn coloured_surface(&self, params: &PhotoParams) -> ColouredSurface {
+    /// The live slots' voxels coloured (in increasing linear index), and their re-projection error
+    /// in `views` through the views' item buffers (which are those of the live slots).
+    fn coloured_surface_with_error(&self, views: &[PhotoView<'_>], params: &PhotoParams) -> (ColouredSurface, f64) {
         let mut slots: Vec<u32> = (0..self.voxels.len() as u32).filter(|&s| self.live[s as usize]).collect();
         slots.sort_unstable_by_key(|&s| self.lins[s as usize]);
         let colours: Vec<([u8; 3], bool)> = slots
@@ -421,11 +427,19 @@ impl<'a> Carver<'a> {
                 (surface_colour(&samples), !samples.is_empty())
             })
             .collect();
-        ColouredSurface {
+        // Colours by slot, for the item buffers (dead slots own no pixel).
+        let mut by_slot = vec![[0u8; 3]; self.voxels.len()];
+        for (&s, c) in slots.iter().zip(&colours) {
+            by_slot[s as usize] = c.0;
+        }
+        let ids: Vec<&[u32]> = self.states.iter().map(|st| st.id.as_slice()).collect();
+        let error = super::reprojection_error_in(&by_slot, views, &ids);
+        let surface = ColouredSurface {
             voxels: slots.iter().map(|&s| self.voxels[s as usize]).collect(),
             colours: colours.iter().map(|c| c.0).collect(),
             seen: colours.iter().map(|c| c.1).collect(),
-        }
+        };
+        (surface, error)
     }
 }
 
@@ -457,7 +471,7 @@ pub(super) fn surface_spreads(
         seen: per_voxel.iter().map(|p| p.1).collect(),
     };
     let ids: Vec<&[u32]> = c.states.iter().map(|st| st.id.as_slice()).collect();
-    let error = super::reprojection_error_in(&surface, views, &ids);
+    let error = super::reprojection_error_in(&surface.colours, views, &ids);
     (spreads, surface, error)
 }
 
@@ -492,13 +506,15 @@ pub(super) fn carve(
         stats.carved += carved.len() as u64;
         todo = c.carve(&carved);
     }
-    let restored = restore_silhouettes(start, &mut c.dense, views);
+    let seen = SeenBy { ids: c.states.iter().map(|st| st.id.as_slice()).collect(), voxels: &c.voxels };
+    // The start's boundary is its surface: the first slots.
+    let start_boundary = &c.voxels[..c.start_slots];
+    let restored = restore_silhouettes(start, start_boundary, &mut c.dense, views, Some(seen));
     stats.carved -= restored;
     let occupancy = c.dense.to_occupancy(grid);
     let (surface, reprojection_error) = if restored == 0 {
-        let surface = c.coloured_surface(params);
-        let error = super::reprojection_error(&grid, &surface, views);
-        (surface, error)
+        // The item buffers are still those of the result's surface.
+        c.coloured_surface_with_error(views, params)
     } else {
         super::colour_dense_with_error(&c.dense, &c.cams, &c.pixels, views, params)
     };

@@ -16,10 +16,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::{
-    claim, colour_dense_with_error, colouring_verdict_in, ordinal_direction, restore_silhouettes, Dense, PhotoModel,
-    PhotoStats,
-};
+use super::{claim, colouring_verdict_in, ordinal_direction, restore_and_colour, Dense, PhotoModel, PhotoStats};
 use crate::pipeline::occupancy::Occupancy;
 use crate::pipeline::photo_consistency::{check_inputs, PhotoError, PhotoParams, PhotoView, ViewPixels, VoxelCamera};
 
@@ -55,17 +52,18 @@ pub(super) fn color(
     let grid = *start.grid();
     let d = ordinal_direction(&grid, views)?;
     let pixels = ViewPixels::all(views);
-    let (dense, mut stats) = color_along(start, views, &pixels, params, d);
+    let (mut dense, mut stats) = color_along(start, views, &pixels, params, d);
     let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
+    let (restored, surface, reprojection_error) = restore_and_colour(start, &mut dense, &cams, &pixels, views, params);
+    stats.carved -= restored;
     let occupancy = dense.to_occupancy(grid);
-    let (surface, reprojection_error) = colour_dense_with_error(&dense, &cams, &pixels, views, params);
     stats.seconds = t.elapsed().as_secs_f64();
     Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
 }
 
 /// Voxel colouring from `start` in layers of increasing `d·x` (`d` a unit vector, grid frame, for
 /// which `views` satisfy the ordinal visibility constraint; inputs already checked), with `pixels`
-/// the views' [`ViewPixels`] (same order): the carved occupancy (silhouettes restored, see
+/// the views' [`ViewPixels`] (same order): the carved occupancy (silhouettes not yet restored, see
 /// `restore_silhouettes`) and the counters (`seconds` left at 0).
 pub(super) fn color_along(
     start: &Occupancy,
@@ -177,6 +175,5 @@ pub(super) fn color_along(
             }
         }
     }
-    stats.carved -= restore_silhouettes(start, &mut dense, views);
     (dense, stats)
 }
