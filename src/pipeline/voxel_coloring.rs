@@ -968,47 +968,53 @@ fn colour_dense(
     pixels: &[ViewPixels<'_>],
     params: &PhotoParams,
 ) -> ColouredSurface {
-    colour_dense_buffers(dense, cams, pixels, params).0
-}
-
-/// [`colour_dense`] with the item buffers of the surface it coloured through (by index into
-/// `voxels`).
-fn colour_dense_buffers(
-    dense: &Dense,
-    cams: &[VoxelCamera],
-    pixels: &[ViewPixels<'_>],
-    params: &PhotoParams,
-) -> (ColouredSurface, Vec<ItemBuffer>) {
     let voxels = dense.surface();
     let buffers = render_item_buffers(cams, &voxels);
-    colour_buffers(dense, cams, pixels, params, voxels, buffers)
+    colour_buffers(dense, cams, pixels, params, voxels, &buffers)
 }
 
-/// [`colour_dense_buffers`] with `dense`'s surface voxels and their item buffers given.
+/// [`colour_dense`] with `dense`'s surface voxels and their item buffers (by index into `voxels`)
+/// given.
 fn colour_buffers(
     dense: &Dense,
     cams: &[VoxelCamera],
     pixels: &[ViewPixels<'_>],
     params: &PhotoParams,
     voxels: Vec<[u32; 3]>,
-    buffers: Vec<ItemBuffer>,
-) -> (ColouredSurface, Vec<ItemBuffer>) {
+    buffers: &[ItemBuffer],
+) -> ColouredSurface {
     let occ = |i, j, k| dense.get(i, j, k);
     let colours: Vec<([u8; 3], bool)> = voxels
         .par_iter()
         .enumerate()
         .map(|(idx, &v)| {
             let normal = normal_estimate(&occ, v);
-            let (samples, _) = gather(cams, pixels, buffers.as_slice(), v, idx as u32, normal, params, false);
+            let (samples, _) = gather(cams, pixels, buffers, v, idx as u32, normal, params, false);
             (surface_colour(&samples), !samples.is_empty())
         })
         .collect();
-    let surface = ColouredSurface {
+    ColouredSurface {
         voxels,
         colours: colours.iter().map(|c| c.0).collect(),
         seen: colours.iter().map(|c| c.1).collect(),
-    };
-    (surface, buffers)
+    }
+}
+
+/// [`colour_buffers`] and the coloured surface's re-projection error in `views` through the same
+/// item buffers.
+fn colour_buffers_with_error(
+    dense: &Dense,
+    cams: &[VoxelCamera],
+    pixels: &[ViewPixels<'_>],
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+    voxels: Vec<[u32; 3]>,
+    buffers: &[ItemBuffer],
+) -> (ColouredSurface, f64) {
+    let surface = colour_buffers(dense, cams, pixels, params, voxels, buffers);
+    let ids: Vec<&[u32]> = buffers.iter().map(ItemBuffer::ids).collect();
+    let error = reprojection_error_in(&surface.colours, views, &ids);
+    (surface, error)
 }
 
 /// The coloured surface of `dense` and its re-projection error in `views`, from one set of item
@@ -1020,10 +1026,9 @@ fn colour_dense_with_error(
     views: &[PhotoView<'_>],
     params: &PhotoParams,
 ) -> (ColouredSurface, f64) {
-    let (surface, buffers) = colour_dense_buffers(dense, cams, pixels, params);
-    let ids: Vec<&[u32]> = buffers.iter().map(ItemBuffer::ids).collect();
-    let error = reprojection_error_in(&surface.colours, views, &ids);
-    (surface, error)
+    let voxels = dense.surface();
+    let buffers = render_item_buffers(cams, &voxels);
+    colour_buffers_with_error(dense, cams, pixels, views, params, voxels, &buffers)
 }
 
 /// [`restore_silhouettes`] on `dense` (carved from `start`), then the coloured surface and its
@@ -1042,14 +1047,12 @@ fn restore_and_colour(
     let buffers = render_item_buffers(cams, &voxels);
     let seen = SeenBy { ids: buffers.iter().map(ItemBuffer::ids).collect(), voxels: &voxels };
     let restored = restore_silhouettes(start, &start.boundary_voxels(), dense, views, Some(seen));
-    if restored > 0 {
-        let (surface, error) = colour_dense_with_error(dense, cams, pixels, views, params);
-        return (restored, surface, error);
-    }
-    let (surface, buffers) = colour_buffers(dense, cams, pixels, params, voxels, buffers);
-    let ids: Vec<&[u32]> = buffers.iter().map(ItemBuffer::ids).collect();
-    let error = reprojection_error_in(&surface.colours, views, &ids);
-    (0, surface, error)
+    let (surface, error) = if restored > 0 {
+        colour_dense_with_error(dense, cams, pixels, views, params)
+    } else {
+        colour_buffers_with_error(dense, cams, pixels, views, params, voxels, &buffers)
+    };
+    (restored, surface, error)
 }
 
 /// Colour the surface of `occupancy` from `views` the way the photo methods colour their results
