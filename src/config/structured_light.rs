@@ -258,8 +258,8 @@ pub(crate) fn validate(config: &RigConfig, bad: &mut dyn FnMut(&str, String)) {
     if !(s.neighbour_tolerance_m.is_finite() && s.neighbour_tolerance_m > 0.0) {
         bad(&key("neighbour_tolerance_m"), "must be a positive number of metres".into());
     }
-    if !(1..=256).contains(&s.outlier_neighbours) {
-        bad(&key("outlier_neighbours"), format!("must be 1..=256, got {}", s.outlier_neighbours));
+    if !(3..=64).contains(&s.outlier_neighbours) {
+        bad(&key("outlier_neighbours"), format!("must be between 3 and 64, got {}", s.outlier_neighbours));
     }
     if !(s.outlier_std_ratio.is_finite() && s.outlier_std_ratio > 0.0) {
         bad(&key("outlier_std_ratio"), "must be a positive number".into());
@@ -408,6 +408,24 @@ mod tests {
             ("reconstruction.structured_light.truncation_voxels", "truncation_voxels"),
         ] {
             assert!(p.contains(&(key.to_owned(), line_of(needle))), "{key} missing from {p:?}");
+        }
+    }
+
+    #[test]
+    fn outlier_neighbours_outside_what_the_cloud_accepts_are_refused_before_the_scan() {
+        // The merged cloud's outlier test takes 3..=64 neighbours; a count outside that used to pass
+        // here and fail the scan only after its last view.
+        for k in [2, 65, 100] {
+            let text =
+                shipped().replace("min_neighbours = 5", &format!("min_neighbours = 5\noutlier_neighbours = {k}"));
+            let line = text.lines().position(|l| l.starts_with("outlier_neighbours")).map(|i| i + 1);
+            let key = "reconstruction.structured_light.outlier_neighbours".to_owned();
+            assert_eq!(problems(&text), vec![(key, line)], "{k}");
+        }
+        for k in [3, 64] {
+            let text =
+                shipped().replace("min_neighbours = 5", &format!("min_neighbours = 5\noutlier_neighbours = {k}"));
+            parse(&text, Path::new("rig.toml")).expect("within the cloud's range");
         }
     }
 
