@@ -400,7 +400,8 @@ impl<'o> Work<'o> {
         let mut ring = Vec::new();
         while let Some((a, b, va, vb)) = queue.pop() {
             let (ai, bi) = (a as usize, b as usize);
-            if !self.alive[ai] || !self.alive[bi] || self.version[ai] != va || self.version[bi] != vb {
+            // A collapse bumps both ends' versions, so a queued edge of a gone vertex is stale too.
+            if self.version[ai] != va || self.version[bi] != vb {
                 continue;
             }
             if vertices_left <= 4 {
@@ -521,6 +522,7 @@ impl<'o> Work<'o> {
             }
         }
         self.alive[ai] = false;
+        self.version[ai] += 1;
         self.pos[bi] = p;
         let qa = self.quadric[ai];
         self.quadric[bi].add(&qa);
@@ -776,9 +778,13 @@ fn best_position(pos: &[[f64; 3]], quadric: &[Quadric], a: u32, b: u32) -> (f64,
     let (pa, pb) = (pos[a as usize], pos[b as usize]);
     let mid = [0, 1, 2].map(|k| 0.5 * (pa[k] + pb[k]));
     let len = norm(sub(pb, pa));
-    let mut best = (f64::INFINITY, mid);
     let near = |p: &[f64; 3]| norm(sub(*p, mid)) <= 2.0 * len;
-    for p in q.minimiser().filter(near).into_iter().chain([pa, pb, mid]) {
+    // A well-conditioned quadric's minimiser is its global minimum: no other candidate is cheaper.
+    if let Some(p) = q.minimiser().filter(near) {
+        return (q.eval(p).max(0.0), p);
+    }
+    let mut best = (f64::INFINITY, mid);
+    for p in [pa, pb, mid] {
         let c = q.eval(p);
         if c < best.0 {
             best = (c, p);
