@@ -246,6 +246,29 @@ impl<'a> TriangleIndex<'a> {
         best
     }
 
+    /// [`Self::distance`] of each point (metres), in the points' order. The points are measured in
+    /// the order of the cells they fall in, so that neighbouring queries read the same triangles
+    /// (the area samples come in random order, and a large mesh's index does not fit in a cache).
+    pub fn distances(&self, points: &[[f32; 3]]) -> Vec<f64> {
+        let mut order: Vec<u64> = points
+            .par_iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let c = self.cell_of(p.map(f64::from));
+                let cell = self.cell_index([0, 1, 2].map(|k| c[k].clamp(0, self.dims[k] - 1)));
+                (cell as u64) << 32 | i as u64
+            })
+            .collect();
+        order.par_sort_unstable();
+        let measured: Vec<f64> =
+            order.par_iter().map(|&key| self.distance(points[(key & 0xffff_ffff) as usize].map(f64::from))).collect();
+        let mut d = vec![0.0; points.len()];
+        for (&key, m) in order.iter().zip(measured) {
+            d[(key & 0xffff_ffff) as usize] = m;
+        }
+        d
+    }
+
     /// Fold the triangles of cell `i` into `best`, skipping those whose bounding sphere is farther
     /// than the nearest found.
     fn search_cell(&self, q: [f64; 3], i: usize, best: &mut f64) {
@@ -269,7 +292,7 @@ pub fn hausdorff_distance(a: &TriangleMesh, b: &TriangleMesh, samples: usize) ->
     let directed = |from: &TriangleMesh, to: &TriangleIndex<'_>, seed: u64| -> (f64, f64, usize) {
         let mut pts: Vec<[f32; 3]> = from.vertices.clone();
         pts.extend(sample_mesh(from, samples, seed));
-        let d: Vec<f64> = pts.par_iter().map(|p| to.distance(p.map(f64::from))).collect();
+        let d = to.distances(&pts);
         let max = d.iter().copied().fold(0.0, f64::max);
         (max, d.iter().sum::<f64>(), d.len())
     };
@@ -383,6 +406,7 @@ mod tests {
         let mut rng = crate::sim::rng::SplitMix64::new(7);
         let mut next = |scale: f64| (rng.next_f64() - 0.5) * 2.0 * scale;
         let mut near = 0;
+        let mut queries = Vec::new();
         for i in 0..600 {
             let scale = [0.05, 1.0, 4.0][i % 3];
             let v = mesh.vertices[(i * 37) % mesh.vertices.len()].map(f64::from);
@@ -395,8 +419,12 @@ mod tests {
                 .sqrt();
             assert!((index.distance(q) - brute).abs() <= 1e-12, "{q:?}: {} vs {brute}", index.distance(q));
             near += usize::from(brute < 0.05);
+            queries.push(q.map(|x| x as f32));
         }
         assert!(near > 150, "{near} points near the surface");
+        // Measured in cell order, returned in the queries' order.
+        let one_by_one: Vec<f64> = queries.iter().map(|q| index.distance(q.map(f64::from))).collect();
+        assert_eq!(index.distances(&queries), one_by_one);
     }
 
     #[test]
