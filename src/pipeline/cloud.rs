@@ -257,24 +257,19 @@ impl PointCloud {
     {
         check_k(k)?;
         let index = KnnIndex::new(&self.points);
-        let normals = self
-            .points
-            .par_iter()
-            .enumerate()
-            .map_init(Vec::new, |buf, (i, p)| {
-                index.k_nearest(p, k, buf);
-                let view = (Vector3::from(viewpoint(i)) - Vector3::from(*p)).cast::<f64>();
-                let mut n = if buf.len() >= 3 { pca_normal(&self.points, buf) } else { None };
-                if k < MAX_K && matches!(n, Some((_, true))) {
-                    index.k_nearest(p, MAX_K, buf);
-                    n = pca_normal(&self.points, buf);
-                }
-                let n = n.map(|(n, _)| n);
-                let n = n.unwrap_or_else(|| view.try_normalize(0.0).unwrap_or(Vector3::z()));
-                let n = if n.dot(&view) < 0.0 { -n } else { n };
-                [n.x as f32, n.y as f32, n.z as f32]
-            })
-            .collect();
+        let normals = index.map_points(|i, p, buf| {
+            index.k_nearest(p, k, buf);
+            let view = (Vector3::from(viewpoint(i)) - Vector3::from(*p)).cast::<f64>();
+            let mut n = if buf.len() >= 3 { pca_normal(&self.points, buf) } else { None };
+            if k < MAX_K && matches!(n, Some((_, true))) {
+                index.k_nearest(p, MAX_K, buf);
+                n = pca_normal(&self.points, buf);
+            }
+            let n = n.map(|(n, _)| n);
+            let n = n.unwrap_or_else(|| view.try_normalize(0.0).unwrap_or(Vector3::z()));
+            let n = if n.dot(&view) < 0.0 { -n } else { n };
+            [n.x as f32, n.y as f32, n.z as f32]
+        });
         self.normals = Some(normals);
         Ok(())
     }
@@ -284,20 +279,16 @@ impl PointCloud {
     pub fn mean_neighbour_distances(&self, k: usize) -> Result<Vec<f32>, CloudError> {
         check_k(k)?;
         let index = KnnIndex::new(&self.points);
-        Ok(self
-            .points
-            .par_iter()
-            .map_init(Vec::new, |buf, p| {
-                index.k_nearest(p, k + 1, buf);
-                // The first neighbour is the point itself (or a duplicate at distance 0).
-                let others = &buf[1.min(buf.len())..];
-                if others.is_empty() {
-                    f32::INFINITY
-                } else {
-                    others.iter().map(|(d2, _)| d2.sqrt()).sum::<f32>() / others.len() as f32
-                }
-            })
-            .collect())
+        Ok(index.map_points(|_, p, buf| {
+            index.k_nearest(p, k + 1, buf);
+            // The first neighbour is the point itself (or a duplicate at distance 0).
+            let others = &buf[1.min(buf.len())..];
+            if others.is_empty() {
+                f32::INFINITY
+            } else {
+                others.iter().map(|(d2, _)| d2.sqrt()).sum::<f32>() / others.len() as f32
+            }
+        }))
     }
 
     /// The statistical inliers: `true` for a point to keep. A point is an outlier when its mean distance
@@ -554,6 +545,24 @@ impl KnnIndex {
     /// The indexed points, metres.
     pub fn points(&self) -> &[[f32; 3]] {
         &self.points
+    }
+
+    /// `f(i, point, scratch)` of every indexed point `i`, in the points' order. The finite points are
+    /// visited cell by cell, in parallel, so that consecutive queries about them read the same cells;
+    /// the others (which no query finds) one by one after them.
+    pub fn map_points<T, F>(&self, f: F) -> Vec<T>
+    where
+        T: Send,
+        F: Fn(usize, &[f32; 3], &mut Vec<(f32, u32)>) -> T + Sync,
+    {
+        let measured: Vec<T> =
+            self.sorted.par_iter().zip(&self.order).map_init(Vec::new, |buf, (p, &i)| f(i as usize, p, buf)).collect();
+        let mut out: Vec<Option<T>> = (0..self.points.len()).map(|_| None).collect();
+        for (&i, m) in self.order.iter().zip(measured) {
+            out[i as usize] = Some(m);
+        }
+        let mut buf = Vec::new();
+        out.into_iter().enumerate().map(|(i, m)| m.unwrap_or_else(|| f(i, &self.points[i], &mut buf))).collect()
     }
 
     /// The `k` points nearest to `q` as `(squared distance m², index)`, nearest first, into `out`
@@ -1069,14 +1078,10 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
     // widths) are stray: they would put a patch of surface of their own into the field.
     let all = KnnIndex::new(cloud.points());
     let support_m = (SUPPORT_KERNELS * h) as f32;
-    let supported: Vec<bool> = cloud
-        .points()
-        .par_iter()
-        .map_init(Vec::new, |buf, p| {
-            all.k_nearest_within(p, SUPPORT_NEIGHBOURS + 1, support_m, buf);
-            buf.len() > SUPPORT_NEIGHBOURS
-        })
-        .collect();
+    let supported: Vec<bool> = all.map_points(|_, p, buf| {
+        all.k_nearest_within(p, SUPPORT_NEIGHBOURS + 1, support_m, buf);
+        buf.len() > SUPPORT_NEIGHBOURS
+    });
     drop(all);
     let kept =
         |v: &[[f32; 3]]| -> Vec<[f32; 3]> { v.iter().zip(&supported).filter(|(_, &s)| s).map(|(x, _)| *x).collect() };
@@ -1391,6 +1396,30 @@ mod tests {
         }
         KnnIndex::with_cell(Vec::new(), 0.1).k_nearest(&[0.0; 3], 3, &mut buf);
         assert!(buf.is_empty());
+    }
+
+    #[test]
+    fn map_points_answers_in_the_points_order_non_finite_ones_too() {
+        let mut rng = Rng(3);
+        let mut pts: Vec<[f32; 3]> = (0..500).map(|_| [rng.next(), rng.next(), rng.next()]).collect();
+        pts[7] = [f32::NAN, 0.0, 0.0];
+        pts[300] = [0.0, f32::INFINITY, 0.0];
+        let index = KnnIndex::new(&pts);
+        let mut buf = Vec::new();
+        let one_by_one: Vec<(usize, Vec<(f32, u32)>)> = pts
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                index.k_nearest(p, 5, &mut buf);
+                (i, buf.clone())
+            })
+            .collect();
+        let mapped = index.map_points(|i, p, buf| {
+            index.k_nearest(p, 5, buf);
+            (i, buf.clone())
+        });
+        assert_eq!(mapped, one_by_one);
+        assert!(mapped[7].1.is_empty() && mapped[300].1.is_empty() && mapped[8].1.len() == 5);
     }
 
     #[test]
