@@ -307,6 +307,9 @@ struct Work<'o> {
     points: Vec<(u32, u32)>,
     ring_a: Vec<u32>,
     ring_b: Vec<u32>,
+    /// Per vertex, the last ring gathering that met it (see [`Work::ring`]), and the current one.
+    met: Vec<u32>,
+    gathering: u32,
 }
 
 /// Why a collapse was not made.
@@ -359,6 +362,8 @@ impl<'o> Work<'o> {
             points: Vec::new(),
             ring_a: Vec::new(),
             ring_b: Vec::new(),
+            met: vec![0; n],
+            gathering: 0,
         }
     }
 
@@ -417,12 +422,43 @@ impl<'o> Work<'o> {
             }
             vertices_left -= 1;
             stats.collapses += 1;
-            neighbours(&self.tris, &self.around[bi], b, &mut ring);
+            self.ring(b, &mut ring);
+            // In increasing index, the order the queue's ties were always pushed in.
+            ring.sort_unstable();
             for &v in &ring {
                 let (x, y) = if v < b { (v, b) } else { (b, v) };
                 self.push(queue, x, y);
             }
         }
+    }
+
+    /// The distinct vertices of the current triangles around `v`, other than `v`, into `out` (in
+    /// the order met); returns how many of them the previous call gathered too.
+    fn ring(&mut self, v: u32, out: &mut Vec<u32>) -> usize {
+        out.clear();
+        if self.gathering == u32::MAX {
+            self.restart_gatherings();
+        }
+        let previous = self.gathering;
+        self.gathering += 1;
+        let mut again = 0;
+        for &t in &self.around[v as usize] {
+            for x in self.tris[t as usize] {
+                let m = &mut self.met[x as usize];
+                if x != v && *m != self.gathering {
+                    again += usize::from(*m == previous);
+                    *m = self.gathering;
+                    out.push(x);
+                }
+            }
+        }
+        again
+    }
+
+    /// Forget every vertex's gathering (before the count would wrap around).
+    fn restart_gatherings(&mut self) {
+        self.met.fill(0);
+        self.gathering = 0;
     }
 
     /// Collapse `a` into `b` when every check passes (module docs).
@@ -438,10 +474,16 @@ impl<'o> Work<'o> {
         if self.shared.len() != 2 {
             return Err(Refusal::Shape);
         }
-        neighbours(&self.tris, &self.around[ai], a, &mut self.ring_a);
-        neighbours(&self.tris, &self.around[bi], b, &mut self.ring_b);
-        let common = self.ring_a.iter().filter(|v| self.ring_b.binary_search(v).is_ok()).count();
-        if common != 2 || self.ring_a.len() + self.ring_b.len() - common - 2 > MAX_VALENCE {
+        // The two gatherings below are counted against each other: neither may restart the count.
+        if self.gathering > u32::MAX - 2 {
+            self.restart_gatherings();
+        }
+        let (mut ring_a, mut ring_b) = (std::mem::take(&mut self.ring_a), std::mem::take(&mut self.ring_b));
+        self.ring(a, &mut ring_a);
+        let common = self.ring(b, &mut ring_b);
+        let valence = ring_a.len() + ring_b.len();
+        (self.ring_a, self.ring_b) = (ring_a, ring_b);
+        if common != 2 || valence - common - 2 > MAX_VALENCE {
             return Err(Refusal::Shape);
         }
         let (cost, p) = best_position(&self.pos, &self.quadric, a, b);
@@ -793,16 +835,6 @@ fn best_position(pos: &[[f64; 3]], quadric: &[Quadric], a: u32, b: u32) -> (f64,
     (best.0.max(0.0), best.1)
 }
 
-/// The distinct vertices of `tris` (indices into `all`) other than `v`, sorted.
-fn neighbours(all: &[[u32; 3]], tris: &[u32], v: u32, out: &mut Vec<u32>) {
-    out.clear();
-    for &t in tris {
-        out.extend(all[t as usize].iter().copied().filter(|&x| x != v));
-    }
-    out.sort_unstable();
-    out.dedup();
-}
-
 /// Unit normal and offset of a triangle's plane; `None` for a degenerate triangle.
 fn plane_of(pos: &[[f64; 3]], t: &[u32; 3]) -> Option<([f64; 3], f64)> {
     let n = cross_of(&t.map(|i| pos[i as usize]));
@@ -840,6 +872,21 @@ mod tests {
 
     fn mesh_of(occ: &Occupancy) -> TriangleMesh {
         extract_surface(occ, &MeshParams::smoothed(0)).expect("mesh")
+    }
+
+    #[test]
+    fn an_edge_whose_ends_share_a_third_neighbour_is_not_collapsed() {
+        // A triangular bipyramid: equator p, q, r (0, 1, 2), poles n and s (3, 4). The equator edge
+        // p-q has the poles opposite it, and r is a third common neighbour of its ends: collapsing
+        // it would leave two copies of the triangles around r. A pole edge n-p has only q and r.
+        let pos = vec![[1.0, 0.0, 0.0], [-0.5, 0.87, 0.0], [-0.5, -0.87, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0]];
+        let tris = vec![[0, 1, 3], [1, 2, 3], [2, 0, 3], [1, 0, 4], [2, 1, 4], [0, 2, 4]];
+        let original = Original::new(pos, tris);
+        let quadric = original.quadrics();
+        let state = State::start(&original, quadric);
+        let mut work = Work::new(&original, state, vec![false; 5], 100.0);
+        assert!(matches!(work.try_collapse(0, 1), Err(Refusal::Shape)));
+        assert!(work.try_collapse(3, 0).is_ok());
     }
 
     #[test]
