@@ -109,13 +109,8 @@ impl<'a> TriangleIndex<'a> {
             TriangleIndex { mesh, tris: Vec::new(), cell, origin: lo, dims, start: Vec::new(), items: Vec::new() };
         let cells = dims.iter().map(|&d| d as usize).product::<usize>();
         // The triangles in the order of their centroid's cell (a counting sort).
-        let home: Vec<usize> = packed
-            .iter()
-            .map(|p| {
-                let c = index.cell_of(p.centre.map(f64::from));
-                index.cell_index([0, 1, 2].map(|k| c[k].clamp(0, dims[k] - 1)))
-            })
-            .collect();
+        let home: Vec<usize> =
+            packed.iter().map(|p| index.cell_index(index.clamped_cell_of(p.centre.map(f64::from)))).collect();
         let mut count = vec![0u32; cells + 1];
         for &h in &home {
             count[h + 1] += 1;
@@ -164,6 +159,12 @@ impl<'a> TriangleIndex<'a> {
         [0, 1, 2].map(|k| self.cell_of_axis(p[k], k))
     }
 
+    /// The cell of `p`, clamped to the grid.
+    fn clamped_cell_of(&self, p: [f64; 3]) -> [i32; 3] {
+        let c = self.cell_of(p);
+        [0, 1, 2].map(|k| c[k].clamp(0, self.dims[k] - 1))
+    }
+
     /// The cell index along axis `k` of coordinate `x` (metres), unclamped to the grid.
     fn cell_of_axis(&self, x: f64, k: usize) -> i32 {
         // `floor` without the library call: truncate, then step down for negative fractions.
@@ -179,8 +180,7 @@ impl<'a> TriangleIndex<'a> {
     /// Call `f` with the index of every cell the triangle's bounding box reaches.
     fn for_cells(&self, corners: &[[f64; 3]; 3], mut f: impl FnMut(usize)) {
         let (a, b) = bbox(corners);
-        let clamp = |c: [i32; 3]| [0, 1, 2].map(|k| c[k].clamp(0, self.dims[k] - 1));
-        let (ca, cb) = (clamp(self.cell_of(a)), clamp(self.cell_of(b)));
+        let (ca, cb) = (self.clamped_cell_of(a), self.clamped_cell_of(b));
         for z in ca[2]..=cb[2] {
             for y in ca[1]..=cb[1] {
                 for x in ca[0]..=cb[0] {
@@ -254,8 +254,7 @@ impl<'a> TriangleIndex<'a> {
             .par_iter()
             .enumerate()
             .map(|(i, p)| {
-                let c = self.cell_of(p.map(f64::from));
-                let cell = self.cell_index([0, 1, 2].map(|k| c[k].clamp(0, self.dims[k] - 1)));
+                let cell = self.cell_index(self.clamped_cell_of(p.map(f64::from)));
                 (cell as u64) << 32 | i as u64
             })
             .collect();
