@@ -288,12 +288,24 @@ impl<'a> TriangleIndex<'a> {
 /// The sampled symmetric Hausdorff distance between `a` and `b` (module docs), with `samples` area
 /// samples per surface besides its vertices; `None` when either has no triangle.
 pub fn hausdorff_distance(a: &TriangleMesh, b: &TriangleMesh, samples: usize) -> Option<Hausdorff> {
-    let directed = |from: &TriangleMesh, to: &TriangleIndex<'_>, seed: u64| -> (f64, f64, usize) {
+    hausdorff_outliers(a, b, samples, f64::INFINITY).map(|(h, _)| h)
+}
+
+/// [`hausdorff_distance`], and the samples of either surface (metres, the meshes' frame) farther
+/// than `beyond_m` from the other one.
+pub fn hausdorff_outliers(
+    a: &TriangleMesh,
+    b: &TriangleMesh,
+    samples: usize,
+    beyond_m: f64,
+) -> Option<(Hausdorff, Vec<[f32; 3]>)> {
+    let directed = |from: &TriangleMesh, to: &TriangleIndex<'_>, seed: u64| {
         let mut pts: Vec<[f32; 3]> = from.vertices.clone();
         pts.extend(sample_mesh(from, samples, seed));
         let d = to.distances(&pts);
         let max = d.iter().copied().fold(0.0, f64::max);
-        (max, d.iter().sum::<f64>(), d.len())
+        let far: Vec<[f32; 3]> = pts.iter().zip(&d).filter(|(_, &x)| x > beyond_m).map(|(p, _)| *p).collect();
+        (max, d.iter().sum::<f64>(), d.len(), far)
     };
     // Each direction starts as soon as its target is indexed: while the larger mesh is indexed,
     // the samples of that mesh are measured against the smaller one.
@@ -301,14 +313,16 @@ pub fn hausdorff_distance(a: &TriangleMesh, b: &TriangleMesh, samples: usize) ->
         || TriangleIndex::new(b).map(|ib| directed(a, &ib, 11)),
         || TriangleIndex::new(a).map(|ia| directed(b, &ia, 12)),
     );
-    let ((f, fs, fn_), (g, gs, gn)) = (to_b?, to_a?);
-    Some(Hausdorff {
+    let ((f, fs, fn_, mut far), (g, gs, gn, far_b)) = (to_b?, to_a?);
+    far.extend(far_b);
+    let h = Hausdorff {
         forward_m: f,
         backward_m: g,
         symmetric_m: f.max(g),
         mean_m: (fs + gs) / (fn_ + gn).max(1) as f64,
         samples: [fn_, gn],
-    })
+    };
+    Some((h, far))
 }
 
 fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {
