@@ -1022,19 +1022,25 @@ mod tests {
         assert!(simplify_within(&mesh_of(&Occupancy::full(grid)), 0.0, 100).is_none());
     }
 
+    /// A sphere of radius 0.7 in a 40^3 grid over [-1, 1]^3, its vertices moved radially by
+    /// deterministic noise spanning `voxels` voxels from lowest to highest.
+    fn noisy_sphere(voxels: f64) -> (VoxelGrid, TriangleMesh) {
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-1.0; 3], max: [1.0; 3] }, 40);
+        let mut mesh = mesh_of(&Occupancy::from_fn(grid, |p| p.norm() < 0.7));
+        for (i, v) in mesh.vertices.iter_mut().enumerate() {
+            let h = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
+            let noise = (h as f64 / (1u64 << 24) as f64 - 0.5) * voxels * grid.voxel_size;
+            let r = v.iter().map(|&x| f64::from(x).powi(2)).sum::<f64>().sqrt();
+            *v = v.map(|x| (f64::from(x) * (1.0 + noise / r)) as f32);
+        }
+        (grid, mesh)
+    }
+
     /// Every vertex of either mesh lies within the bound of the other surface, exactly (not sampled),
     /// on a noisy surface where the quadric alone lets the surfaces drift apart.
     #[test]
     fn every_vertex_is_within_the_bound_of_the_other_surface() {
-        let grid = VoxelGrid::from_resolution(&Aabb { min: [-1.0; 3], max: [1.0; 3] }, 40);
-        let mut mesh = mesh_of(&Occupancy::from_fn(grid, |p| p.norm() < 0.7));
-        // Deterministic radial noise, 0.2 voxel from lowest to highest.
-        for (i, v) in mesh.vertices.iter_mut().enumerate() {
-            let h = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
-            let noise = (h as f64 / (1u64 << 24) as f64 - 0.5) * 0.2 * grid.voxel_size;
-            let r = v.iter().map(|&x| f64::from(x).powi(2)).sum::<f64>().sqrt();
-            *v = v.map(|x| (f64::from(x) * (1.0 + noise / r)) as f32);
-        }
+        let (grid, mesh) = noisy_sphere(0.2);
         let bound = 0.25 * grid.voxel_size;
         let slack = 1e-6;
         let to_mesh = TriangleIndex::new(&mesh).expect("triangles");
@@ -1067,14 +1073,7 @@ mod tests {
     /// still did, and one repair brings every sample within the bound both ways.
     #[test]
     fn triangle_insides_stay_within_the_bound_on_a_rough_surface() {
-        let grid = VoxelGrid::from_resolution(&Aabb { min: [-1.0; 3], max: [1.0; 3] }, 40);
-        let mut mesh = mesh_of(&Occupancy::from_fn(grid, |p| p.norm() < 0.7));
-        for (i, v) in mesh.vertices.iter_mut().enumerate() {
-            let h = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
-            let noise = (h as f64 / (1u64 << 24) as f64 - 0.5) * 2.0 * grid.voxel_size;
-            let r = v.iter().map(|&x| f64::from(x).powi(2)).sum::<f64>().sqrt();
-            *v = v.map(|x| (f64::from(x) * (1.0 + noise / r)) as f32);
-        }
+        let (grid, mesh) = noisy_sphere(2.0);
         let bound = 0.25 * grid.voxel_size;
         let (_, s) = simplify_within(&mesh, bound, 100_000).expect("bound > 0");
         assert!(s.within_bound && s.repairs <= MAX_REPAIRS, "{s:?}");
