@@ -178,6 +178,20 @@ fn bits_for(n: u64) -> u32 {
     (64 - (n.max(2) - 1).leading_zeros()).max(1)
 }
 
+/// The `m` (at most `TILE`) pixels of `image` from `at` as a whole tile: borrowed when whole, else
+/// copied into `pad` with zeros after them, so loops over a tile have a fixed trip count.
+#[inline(always)]
+fn tile_of<'a, const TILE: usize>(image: &'a [u8], at: usize, m: usize, pad: &'a mut [u8; TILE]) -> &'a [u8; TILE] {
+    match <&[u8; TILE]>::try_from(&image[at..at + m]) {
+        Ok(whole) => whole,
+        Err(_) => {
+            pad.fill(0);
+            pad[..m].copy_from_slice(&image[at..at + m]);
+            pad
+        }
+    }
+}
+
 /// Reflected binary Gray code back to the index.
 #[inline]
 fn gray_to_index(mut g: u32) -> u32 {
@@ -439,14 +453,15 @@ impl PhaseShiftPatterns {
                         // Loops over whole tiles (the tail tile's unused lanes compute on zeros) have a fixed
                         // trip count and no bounds checks, so they vectorise.
                         let (mut ok, mut o, mut w) = ([true; TILE], [0f32; TILE], [0f32; TILE]);
+                        let mut pad = [0u8; TILE];
                         // Coarse to fine: the coarsest phase is absolute, each finer one snaps to it.
                         for (f, &period) in periods.iter().enumerate().rev() {
                             let (mut s, mut c, mut sum) = ([0f32; TILE], [0f32; TILE], [0f32; TILE]);
                             for k in 0..steps {
-                                let img = &images[f * steps + k][at..at + m];
+                                let img = tile_of(images[f * steps + k], at, m, &mut pad);
                                 let (sk, ck) = (sin[k], cos[k]);
-                                for (i, &v) in img.iter().enumerate() {
-                                    let v = f32::from(v);
+                                for i in 0..TILE {
+                                    let v = f32::from(img[i]);
                                     s[i] += v * sk;
                                     c[i] += v * ck;
                                     sum[i] += v;
@@ -475,10 +490,14 @@ impl PhaseShiftPatterns {
                             if f == 0 && self.gray {
                                 // The fringe mean `A = ΣI / N` is each pixel's own bit threshold.
                                 let mut code = [0u32; TILE];
+                                let mut mean = [0f32; TILE];
+                                for i in 0..TILE {
+                                    mean[i] = sum[i] * inv;
+                                }
                                 for b in 0..bits {
-                                    let img = &images[fringes + b][at..at + m];
-                                    for (i, &v) in img.iter().enumerate() {
-                                        code[i] = (code[i] << 1) | u32::from(f32::from(v) > sum[i] * inv);
+                                    let img = tile_of(images[fringes + b], at, m, &mut pad);
+                                    for i in 0..TILE {
+                                        code[i] = (code[i] << 1) | u32::from(f32::from(img[i]) > mean[i]);
                                     }
                                 }
                                 for i in 0..TILE {
@@ -487,11 +506,15 @@ impl PhaseShiftPatterns {
                                 }
                             }
                         }
-                        for (i, out) in out.iter_mut().enumerate() {
+                        let mut done = [0f32; TILE];
+                        for i in 0..TILE {
                             // Index coordinates to continuous ones (pixel centres at `x + 0.5`).
                             let v = o[i];
-                            *out = if !ok[i] || v < -0.5 || v > len - 0.5 { f32::NAN } else { v + 0.5 };
+                            // `|`, not `||`: no branch, so the loop vectorises.
+                            let off = !ok[i] | (v < -0.5) | (v > len - 0.5);
+                            done[i] = if off { f32::NAN } else { v + 0.5 };
                         }
+                        out.copy_from_slice(&done[..m]);
                     }
                 },
             )
