@@ -311,6 +311,8 @@ struct Work<'o> {
     shared: Vec<u32>,
     faces: Vec<NewFace>,
     points: Vec<(u32, u32)>,
+    /// The points' squared distances to a probe, with the points (see [`Work::near_original`]).
+    by_gap: Vec<(f64, u32)>,
     ring_a: Vec<u32>,
     ring_b: Vec<u32>,
     /// Per vertex, the last ring gathering that met it (see [`Work::ring`]), and the current one.
@@ -366,6 +368,7 @@ impl<'o> Work<'o> {
             shared: Vec::new(),
             faces: Vec::new(),
             points: Vec::new(),
+            by_gap: Vec::new(),
             ring_a: Vec::new(),
             ring_b: Vec::new(),
             met: vec![0; n],
@@ -592,9 +595,11 @@ impl<'o> Work<'o> {
 
     /// Whether `p` lies within the bound of one of the original vertices gathered in `points`, or of
     /// an original triangle around one of them: first around the nearest of those gathered onto new
-    /// face `face` (of all of them with `None`), then around the others.
-    fn near_original(&self, p: [f64; 3], face: Option<u32>) -> bool {
+    /// face `face` (of all of them with `None`), then around the others, nearest first (the order
+    /// changes only how soon a triangle within the bound is met, not the answer).
+    fn near_original(&mut self, p: [f64; 3], face: Option<u32>) -> bool {
         let mut nearest = (f64::INFINITY, NONE);
+        self.by_gap.clear();
         for &(x, f) in &self.points {
             let d = sub(p, self.original.pos[x as usize]);
             let gap = dot(d, d);
@@ -604,15 +609,22 @@ impl<'o> Work<'o> {
             if gap < nearest.0 && face.is_none_or(|k| k == f) {
                 nearest = (gap, x);
             }
+            self.by_gap.push((gap, x));
         }
+        let original = self.original;
+        let bound2 = self.bound2;
         let near_triangles = |x: u32| {
-            self.original.triangles_of(x).iter().any(|&t| {
-                let tri = self.original.tris[t as usize].map(|i| self.original.pos[i as usize]);
-                point_triangle_distance2(p, &tri) <= self.bound2
+            original.triangles_of(x).iter().any(|&t| {
+                let tri = original.tris[t as usize].map(|i| original.pos[i as usize]);
+                point_triangle_distance2(p, &tri) <= bound2
             })
         };
         let first = nearest.1;
-        (first != NONE && near_triangles(first)) || self.points.iter().any(|&(x, _)| x != first && near_triangles(x))
+        if first != NONE && near_triangles(first) {
+            return true;
+        }
+        self.by_gap.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        self.by_gap.iter().any(|&(_, x)| x != first && near_triangles(x))
     }
 }
 
