@@ -9,8 +9,10 @@
 //! replaced (`benches/shadow_baseline.rs`, same result checked). Inputs are synthetic and analytic
 //! (a sphere, a plane, a bowl); the peers read the
 //! files this bench writes to a temporary directory, and are run by it, so each ratio comes from
-//! one run. Each case prints a line and a `PERF` line (JSON) for `benches/perf_table.py`; a peer
-//! that cannot run (no python3, no Open3D) is reported as such, with no ratio.
+//! one run: ours and the peer alternate in three rounds, and the ratio stated is the median of the
+//! three rounds' ratios (a change in the machine's load then sways one round, not the ratio). Each
+//! case prints a line and a `PERF` line (JSON) for `benches/perf_table.py`; a peer that cannot run
+//! (no python3, no Open3D) is reported as such, with no ratio.
 //!
 //! `cargo bench --bench methods [-- tsdf laser structured-light shadow]`; `PYTHON=...` picks the
 //! interpreter.
@@ -49,15 +51,51 @@ fn median_s(runs: usize, mut f: impl FnMut()) -> f64 {
     t[runs / 2]
 }
 
-/// One line for `benches/perf_table.py`. `ours` and `peer` in seconds per unit of work; `rate` the
-/// unit's name when the figure is a throughput (frames/s, clouds/s).
-fn perf_line(method: &str, case: &str, ours: f64, peer: Option<(&str, f64)>, rate: Option<&str>) {
-    let (name, p) = peer.map_or((None, None), |(n, s)| (Some(n), Some(s)));
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// One line for `benches/perf_table.py`. `ours` and the peer's seconds in seconds per unit of work,
+/// with the ratio (theirs / ours) to state; `rate` the unit's name when the figure is a throughput
+/// (frames/s, clouds/s).
+fn perf_line(method: &str, case: &str, ours: f64, peer: Option<(&str, f64, f64)>, rate: Option<&str>) {
+    let (name, p, ratio) = peer.map_or((None, None, None), |(n, s, r)| (Some(n), Some(s), Some(r)));
     println!(
         "PERF {}",
         serde_json::json!({"method": method, "case": case, "ours_s": ours, "peer": name, "peer_s": p,
-            "ratio": p.map(|p| p / ours), "rate": rate})
+            "ratio": ratio, "rate": rate})
     );
+}
+
+/// Rounds of ours against a peer script, alternated.
+const ROUNDS: usize = 3;
+
+/// Ours (`median_s(runs, f)`) and the peer script (`run_peer`) alternately, [`ROUNDS`] times: a
+/// change in the machine's load between the two sides then shows in one round instead of biasing
+/// the ratio. Returns the median of our times and, unless the peer failed, the median of its times
+/// and of the per-round ratios.
+fn paired(runs: usize, script: &str, args: &[&str], mut f: impl FnMut()) -> (f64, Result<(f64, f64), String>) {
+    let (mut ours, mut theirs, mut ratios) = (Vec::new(), Vec::new(), Vec::new());
+    let mut failed = None;
+    for _ in 0..ROUNDS {
+        let o = median_s(runs, &mut f);
+        ours.push(o);
+        if failed.is_none() {
+            match run_peer(script, args) {
+                Ok(p) => {
+                    theirs.push(p);
+                    ratios.push(p / o);
+                }
+                Err(e) => failed = Some(e),
+            }
+        }
+    }
+    let peer = match failed {
+        Some(e) => Err(e),
+        None => Ok((median(theirs), median(ratios))),
+    };
+    (median(ours), peer)
 }
 
 /// Run `benches/<script>` with `args`; its last line `PEER_S <seconds>` is the peer's time.
@@ -143,9 +181,10 @@ fn tsdf(dir: &Path) {
     let spec = serde_json::json!({"width": w, "height": h, "fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy,
         "origin": bbox.min, "length": bbox.max[0] - bbox.min[0], "resolution": n, "sdf_trunc": trunc,
         "views": meta});
-    std::fs::write(dir.join("tsdf.json"), spec.to_string()).expect("write tsdf.json");
+    let spec_path = dir.join("tsdf.json");
+    std::fs::write(&spec_path, spec.to_string()).expect("write tsdf.json");
     let params = FusionParams { truncation_m: trunc, max_weight: 64.0, missing_is_free: true };
-    let ours = median_s(5, || {
+    let (ours, peer) = paired(5, "tsdf_open3d_peer.py", &[spec_path.to_str().expect("utf-8 path")], || {
         let mut t = Tsdf::new(grid, params).expect("grid");
         for (cam, d) in cams.iter().zip(&depths) {
             t.integrate(cam, d).expect("integrates");
@@ -169,14 +208,16 @@ fn tsdf(dir: &Path) {
         fused.memory_bytes() as f64 / 1e6,
         (grid.len() * 8) as f64 / 1e6
     );
-    match run_peer("tsdf_open3d_peer.py", &[dir.join("tsdf.json").to_str().expect("utf-8 path")]) {
-        Ok(p) => {
-            println!("tsdf: Open3D UniformTSDFVolume {p:.3} s, ratio {:.1}x", p / ours);
+    match peer {
+        Ok((p, ratio)) => {
+            println!(
+                "tsdf: Open3D UniformTSDFVolume {p:.3} s, ratio {ratio:.1}x (median of {ROUNDS} alternated rounds)"
+            );
             perf_line(
                 "depth-fusion (TSDF)",
                 "128^3, 24 depth maps 640x480",
                 ours,
-                Some(("Open3D UniformTSDFVolume", p)),
+                Some(("Open3D UniformTSDFVolume", p, ratio)),
                 None,
             );
         }
@@ -212,15 +253,12 @@ fn laser(dir: &Path) {
         off.save(&off_path).expect("write");
         on.save(&on_path).expect("write");
         let params = StripeParams::default();
-        let mut points = 0;
-        let ours = median_s(51, || {
+        let frame = || {
             let peaks = detect_stripe(&off, &on, [255, 0, 0], &params).expect("params");
-            let pts = triangulate_peaks(&cam, &plane, &peaks);
-            points = pts.len();
-            black_box(pts);
-        });
-        let case = format!("{w}x{h}, one stripe");
-        println!("laser {w}x{h}: {:.3} ms per frame ({:.0} frames/s), {points} points", ours * 1e3, 1.0 / ours);
+            triangulate_peaks(&cam, &plane, &peaks)
+        };
+        // Once untimed: the peer checks its point count against ours.
+        let points = frame().len();
         let spec = serde_json::json!({"off": off_path, "on": on_path, "min_peak": params.min_peak,
             "max_width": params.max_width_px, "half_window": params.half_window_px,
             "fx": f, "fy": f, "cx": w as f64 / 2.0, "cy": h as f64 / 2.0,
@@ -229,10 +267,18 @@ fn laser(dir: &Path) {
             "plane_normal": plane.normal, "plane_offset": plane.offset_m, "points": points});
         let spec_path = dir.join(format!("laser_{w}.json"));
         std::fs::write(&spec_path, spec.to_string()).expect("write");
-        match run_peer("laser_numpy_peer.py", &[spec_path.to_str().expect("utf-8 path")]) {
-            Ok(p) => {
-                println!("laser {w}x{h}: numpy {:.3} ms per frame, ratio {:.1}x", p * 1e3, p / ours);
-                perf_line("laser", &case, ours, Some(("numpy per-row peak", p)), Some("frames/s"));
+        let (ours, peer) = paired(51, "laser_numpy_peer.py", &[spec_path.to_str().expect("utf-8 path")], || {
+            black_box(frame());
+        });
+        let case = format!("{w}x{h}, one stripe");
+        println!("laser {w}x{h}: {:.3} ms per frame ({:.0} frames/s), {points} points", ours * 1e3, 1.0 / ours);
+        match peer {
+            Ok((p, ratio)) => {
+                println!(
+                    "laser {w}x{h}: numpy {:.3} ms per frame, ratio {ratio:.1}x (median of {ROUNDS} alternated rounds)",
+                    p * 1e3
+                );
+                perf_line("laser", &case, ours, Some(("numpy per-row peak", p, ratio)), Some("frames/s"));
             }
             Err(e) => {
                 println!("laser: peer unavailable ({e})");
@@ -371,9 +417,8 @@ fn structured_light() {
     let prm = DecodeParams::default();
     let mut pm = ProjectorMap::new();
     let mut merged = PointCloud::new();
-    let mut points = 0;
     let mut stages = Stages::default();
-    let ours = median_s(7, || {
+    let mut gray_view = |stages: &mut Stages| {
         stages.start();
         decode(&gray, &imgs, w as usize, h as usize, &prm, &mut pm).expect("decodes");
         stages.lap(0);
@@ -381,18 +426,14 @@ fn structured_light() {
         stages.lap(1);
         stages.passes.push(triangulator.last_pass_seconds());
         let cloud = range.valid_cloud();
-        points = cloud.len();
+        let points = cloud.len();
         merged = PointCloud::new();
         merged.extend(cloud);
         stages.lap(2);
-    });
-    stages.print("Gray code");
-    println!(
-        "structured light Gray code {w}x{h} ({} images): decode + triangulate + merge {:.1} ms ({:.1} clouds/s), {points} points",
-        gray.count(),
-        ours * 1e3,
-        1.0 / ours
-    );
+        points
+    };
+    // Once untimed: the peer checks its point count against ours.
+    let points = gray_view(&mut Stages::default());
     // The peer decodes OpenCV's own Gray-code images, synthesised through the same camera ->
     // projector lookup, and triangulates with the same calibration.
     let dir = tempfile::tempdir().expect("temporary directory");
@@ -411,14 +452,27 @@ fn structured_light() {
         "lookup": lookup_path.to_str().expect("utf-8 path"), "points": points});
     let spec_path = dir.path().join("sl.json");
     std::fs::write(&spec_path, spec.to_string()).expect("write");
-    match run_peer("opencv_sl_peer.py", &[spec_path.to_str().expect("utf-8 path")]) {
-        Ok(p) => {
-            println!("structured light Gray code: OpenCV {:.1} ms per view, ratio {:.1}x", p * 1e3, p / ours);
+    let (ours, peer) = paired(7, "opencv_sl_peer.py", &[spec_path.to_str().expect("utf-8 path")], || {
+        black_box(gray_view(&mut stages));
+    });
+    stages.print("Gray code");
+    println!(
+        "structured light Gray code {w}x{h} ({} images): decode + triangulate + merge {:.1} ms ({:.1} clouds/s), {points} points",
+        gray.count(),
+        ours * 1e3,
+        1.0 / ours
+    );
+    match peer {
+        Ok((p, ratio)) => {
+            println!(
+                "structured light Gray code: OpenCV {:.1} ms per view, ratio {ratio:.1}x (median of {ROUNDS} alternated rounds)",
+                p * 1e3
+            );
             perf_line(
                 "structured light (Gray code)",
                 "1280x1024, one view",
                 ours,
-                Some(("OpenCV structured_light + triangulatePoints", p)),
+                Some(("OpenCV structured_light + triangulatePoints", p, ratio)),
                 Some("clouds/s"),
             );
         }
@@ -433,6 +487,7 @@ fn structured_light() {
     let imgs: Vec<&[u8]> = images.iter().map(Vec::as_slice).collect();
     let prm = PhaseDecodeParams::default();
     let mut stages = Stages::default();
+    let mut points = 0;
     let ours = median_s(7, || {
         stages.start();
         let coords = phase.decode(&imgs, w as usize, h as usize, &prm).expect("decodes");
@@ -652,7 +707,7 @@ fn shadow_carving() {
         "shadow carving",
         "128^3, 24 positions x 4 lights",
         ours,
-        Some(("sweeps over every candidate (before)", base)),
+        Some(("sweeps over every candidate (before)", base, base / ours)),
         None,
     );
 }
@@ -697,7 +752,7 @@ fn mesh_simplification() {
         "mesh simplification",
         &format!("128^3 solid, {} triangles, 0.25 voxel", mesh.triangles.len()),
         ours,
-        Some(("one region, collapses in sequence (before)", base)),
+        Some(("one region, collapses in sequence (before)", base, base / ours)),
         None,
     );
 }

@@ -57,7 +57,8 @@ def rows_from(text):
 def table(rows, load_before, load_after, cores, scans):
     out = [
         f"Measured on {cores} cores; load average (1, 5, 15 min) {load_before} before the run and {load_after} "
-        "after it (ratios come from one run, both sides under the same load).",
+        "after it (ratios come from one run, both sides under the same load; against an external peer, "
+        "ours and the peer alternate in three rounds and the ratio is the median of the rounds' ratios).",
         "",
         "| method | case | ours | baseline or peer (same run) | theirs | ratio |",
         "|---|---|---|---|---|---|",
