@@ -418,7 +418,9 @@ impl PhaseShiftPatterns {
 
     fn decode_axis(&self, axis: Axis, images: &[&[u8]], width: usize, params: &PhaseDecodeParams) -> Vec<f32> {
         let n = images.first().map_or(0, |i| i.len());
-        let mut out = vec![f32::NAN; n];
+        // Every element is written below: zeroed memory (fresh pages, faulted in by the threads
+        // that write them) instead of a fill on this thread.
+        let mut out = vec![0f32; n];
         let steps = self.steps;
         let (sin, cos): (Vec<f32>, Vec<f32>) = (0..steps)
             .map(|k| {
