@@ -640,6 +640,24 @@ mod tests {
         }
     }
 
+    /// A last tile cut short by the image's end (its missing pixels padded with zeros) decodes each
+    /// of its pixels as a whole tile does: the first 150 pixels of a capture (two tiles of 64 and 22
+    /// pixels) decoded on their own give, bit for bit, what the whole capture gives them.
+    #[test]
+    fn a_short_last_tile_decodes_like_a_whole_one() {
+        let p = PhaseShiftPatterns::new(640, 480, 4, 16.0, Unwrapping::GrayCode, true).expect("valid");
+        let imgs: Vec<Vec<u8>> = (0..p.count()).map(|i| p.render(i, None).expect("in range")).collect();
+        let whole: Vec<&[u8]> = imgs.iter().map(Vec::as_slice).collect();
+        let full = p.decode(&whole, 640, 480, &PhaseDecodeParams::default()).expect("decodes");
+        let short: Vec<&[u8]> = imgs.iter().map(|i| &i[..150]).collect();
+        let part = p.decode(&short, 50, 3, &PhaseDecodeParams::default()).expect("decodes");
+        assert_eq!(part.valid_count(), 150);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&part.column), bits(&full.column[..150]));
+        let (part_rows, full_rows) = (part.row.as_ref().expect("rows"), full.row.as_ref().expect("rows"));
+        assert_eq!(bits(part_rows), bits(&full_rows[..150]));
+    }
+
     #[test]
     fn flat_pixels_are_invalid_and_bad_layouts_are_refused() {
         let p = PhaseShiftPatterns::new(64, 4, 3, 8.0, Unwrapping::GrayCode, false).expect("valid");
