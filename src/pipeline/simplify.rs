@@ -598,20 +598,21 @@ impl<'o> Work<'o> {
     /// face `face` (of all of them with `None`), then around the others, nearest first (the order
     /// changes only how soon a triangle within the bound is met, not the answer).
     fn near_original(&mut self, p: [f64; 3], face: Option<u32>) -> bool {
+        let original = self.original;
+        let gap_of = |x: u32| {
+            let d = sub(p, original.pos[x as usize]);
+            dot(d, d)
+        };
         let mut nearest = (f64::INFINITY, NONE);
-        self.by_gap.clear();
         for &(x, f) in &self.points {
-            let d = sub(p, self.original.pos[x as usize]);
-            let gap = dot(d, d);
+            let gap = gap_of(x);
             if gap <= self.bound2 {
                 return true;
             }
             if gap < nearest.0 && face.is_none_or(|k| k == f) {
                 nearest = (gap, x);
             }
-            self.by_gap.push((gap, x));
         }
-        let original = self.original;
         let bound2 = self.bound2;
         let near_triangles = |x: u32| {
             original.triangles_of(x).iter().any(|&t| {
@@ -623,6 +624,9 @@ impl<'o> Work<'o> {
         if first != NONE && near_triangles(first) {
             return true;
         }
+        // Only here (about one probe in six) are the gaps kept, to order the rest by.
+        self.by_gap.clear();
+        self.by_gap.extend(self.points.iter().map(|&(x, _)| (gap_of(x), x)));
         self.by_gap.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
         self.by_gap.iter().any(|&(_, x)| x != first && near_triangles(x))
     }
