@@ -84,6 +84,13 @@ impl HandleRepair {
 /// The occupancy with its voxel-scale handles removed (module docs), and what changed. Same grid
 /// (metres, its frame) as the input.
 pub fn remove_small_handles(occupancy: &Occupancy) -> (Occupancy, HandleRepair) {
+    remove_small_handles_with(occupancy, None)
+}
+
+/// [`remove_small_handles`] with the side searches of each repair using fixed components after
+/// `label_after` voxels visited in all (`None`: as many as the volume has); the result does not
+/// depend on it (the tests compare).
+fn remove_small_handles_with(occupancy: &Occupancy, label_after: Option<usize>) -> (Occupancy, HandleRepair) {
     let t = Instant::now();
     let grid = *occupancy.grid();
     let mut stats = HandleRepair::default();
@@ -92,6 +99,7 @@ pub fn remove_small_handles(occupancy: &Occupancy) -> (Occupancy, HandleRepair) 
         return (occupancy.clone(), stats);
     }
     let mut v = Volume::new(occupancy);
+    v.label_after = label_after.unwrap_or(v.cells.len());
     let original = v.cells.clone();
     // Every change stays next to the input's surface: a voxel filled touches a solid voxel of the
     // input, a voxel cut touches an empty one (26-neighbourhood), whatever the round.
@@ -226,6 +234,17 @@ struct Volume {
     stamp: Vec<u32>,
     group: Vec<u8>,
     searches: u32,
+    /// Components of the voxels one [`Volume::repair`] cannot change (see
+    /// [`Volume::sides_stay_connected`]): a label per voxel, valid from `label_base` on (labels of an
+    /// earlier repair are below it), labelled a component at a time as searches reach them.
+    label: Vec<u32>,
+    label_base: u32,
+    next_label: u32,
+    /// Voxels the side searches of one repair visit in all before they use the labels: labelling
+    /// costs up to the volume once per repair, so it starts only once the searches have cost as much.
+    label_after: usize,
+    /// Voxels the side searches of the current repair have visited.
+    repair_visits: usize,
 }
 
 impl Volume {
@@ -237,7 +256,20 @@ impl Volume {
         occ.for_each_occupied(|i, j, k| cells[(i + 1) + pitch[1] * (j + 1) + pitch[2] * (k + 1)] = 1);
         let nb = neighbour_offsets()
             .map(|o| o[0] as isize + o[1] as isize * pitch[1] as isize + o[2] as isize * pitch[2] as isize);
-        Volume { cells, dims, pitch, nb, stamp: Vec::new(), group: Vec::new(), searches: 0 }
+        Volume {
+            cells,
+            dims,
+            pitch,
+            nb,
+            stamp: Vec::new(),
+            group: Vec::new(),
+            searches: 0,
+            label: Vec::new(),
+            label_base: 1,
+            next_label: 1,
+            label_after: 0,
+            repair_visits: 0,
+        }
     }
 
     /// Is linear index `i` off the padding layer?
@@ -324,6 +356,13 @@ impl Volume {
             queued[i] = true;
         }
         let mut queue: VecDeque<usize> = start.into();
+        // Labels of an earlier repair describe other fixed voxels: start afresh.
+        if self.next_label > u32::MAX / 2 {
+            self.label.fill(0);
+            self.next_label = 1;
+        }
+        self.label_base = self.next_label;
+        self.repair_visits = 0;
         let mut grown = Vec::new();
         let mut handles = 0u64;
         while let Some(i) = queue.pop_front() {
@@ -339,7 +378,7 @@ impl Volume {
             }
             if nb > 1 {
                 let sides = group_masks(!m & 0x3fff);
-                if !self.sides_stay_connected(i, other, &sides) {
+                if !self.sides_stay_connected(i, other, &sides, allowed) {
                     continue;
                 }
                 handles += u64::from(nb - 1);
@@ -393,7 +432,14 @@ impl Volume {
     /// masks over the 14 neighbours) stay connected to each other through voxels of value `other`?
     /// One breadth-first search per group, run a voxel at a time in turn, until all have met or one
     /// has run out of voxels (it is enclosed).
-    fn sides_stay_connected(&mut self, i: usize, other: u8, sides: &[u16]) -> bool {
+    ///
+    /// Voxels of value `other` outside `allowed` keep their value for the whole repair, so two
+    /// groups whose searches reach the same component of them are connected: once the repair's
+    /// searches have visited as many voxels as the volume has, the components they reach are
+    /// labelled (each once per repair) and groups that reach the same one meet there. The searches
+    /// are otherwise unchanged, so the answer is the same; it only comes sooner where the groups
+    /// meet far away (around a wall on a fine grid, where each search had walked around it).
+    fn sides_stay_connected(&mut self, i: usize, other: u8, sides: &[u16], allowed: &[bool]) -> bool {
         if self.stamp.is_empty() {
             self.stamp = vec![0; self.cells.len()];
             self.group = vec![0; self.cells.len()];
@@ -428,6 +474,8 @@ impl Volume {
         }
         let mut classes = n;
         let last = self.cells.len();
+        // The group that first reached each fixed component, once searches are long.
+        let mut owners: Vec<(u32, usize)> = Vec::new();
         loop {
             for g in 0..n {
                 let Some(j) = queues[g].pop_front() else {
@@ -438,7 +486,7 @@ impl Volume {
                     }
                     continue;
                 };
-                for &o in &self.nb {
+                for o in self.nb {
                     let k = j as isize + o;
                     if k < 0 || k as usize >= last {
                         continue;
@@ -464,9 +512,57 @@ impl Volume {
                     self.stamp[k] = s;
                     self.group[k] = g as u8;
                     queues[g].push_back(k);
+                    self.repair_visits += 1;
+                    if self.repair_visits > self.label_after && !allowed[k] {
+                        let c = self.component(k, other, allowed);
+                        match owners.iter().find(|&&(d, _)| d == c) {
+                            Some(&(_, h)) => {
+                                let (a, b) = (find(&mut parent, g), find(&mut parent, h));
+                                if a != b {
+                                    parent[a] = b;
+                                    classes -= 1;
+                                    if classes == 1 {
+                                        return true;
+                                    }
+                                }
+                            }
+                            None => owners.push((c, g)),
+                        }
+                    }
                 }
             }
         }
+    }
+
+    /// The label of the component, through voxels of value `other` outside `allowed` (14-adjacency),
+    /// that holds voxel `k` (one such voxel); the whole component is labelled the first time.
+    fn component(&mut self, k: usize, other: u8, allowed: &[bool]) -> u32 {
+        if self.label.is_empty() {
+            self.label = vec![0; self.cells.len()];
+        }
+        if self.label[k] >= self.label_base {
+            return self.label[k];
+        }
+        let c = self.next_label;
+        self.next_label += 1;
+        let last = self.cells.len();
+        self.label[k] = c;
+        let mut stack = vec![k];
+        let nb = self.nb;
+        while let Some(j) = stack.pop() {
+            for &o in &nb {
+                let x = j as isize + o;
+                if x < 0 || x as usize >= last {
+                    continue;
+                }
+                let x = x as usize;
+                if self.cells[x] == other && !allowed[x] && self.label[x] < self.label_base {
+                    self.label[x] = c;
+                    stack.push(x);
+                }
+            }
+        }
+        c
     }
 }
 
@@ -569,6 +665,40 @@ mod tests {
             assert!(!changed.is_empty(), "{stats:?}");
             // Only voxels of the hole are filled.
             assert!(changed.iter().all(|c| in_hole(c[0], c[1]) && (10..12).contains(&c[2])), "{changed:?}");
+        }
+    }
+
+    #[test]
+    fn searches_that_meet_in_fixed_components_give_the_same_answers() {
+        // Labelling fixed components from the first voxel on and never: the same result, on a large
+        // wall with a one-voxel hole (the sides meet around the wall), a hollow box with a one-voxel
+        // hole (filling it would enclose the cavity: refused) and a noisy blob with many handles.
+        let g64 = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [0.064; 3] }, 64);
+        let wall = Occupancy::from_index_fn(g64, |i, j, k| {
+            (2..62).contains(&i) && (2..62).contains(&j) && (30..32).contains(&k) && !(i == 31 && j == 31)
+        });
+        let hollow = Occupancy::from_index_fn(g64, |i, j, k| {
+            let outer = [i, j, k].iter().all(|x| (8..56).contains(x));
+            let inner = [i, j, k].iter().all(|x| (10..54).contains(x));
+            outer && !inner && !(i == 31 && j == 31 && k < 10)
+        });
+        let blob = Occupancy::from_index_fn(g64, |i, j, k| {
+            let p = [i, j, k].map(|x| x as f64 - 31.5);
+            let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+            let noise = ((i * 7919 + j * 104_729 + k * 1_299_709) % 97) as f64 / 97.0;
+            r < 24.0 && (r < 20.0 || noise < 0.55) && !(r < 17.0 && noise < 0.9)
+        });
+        for (name, occ, handles) in [("wall", &wall, Some(1)), ("hollow box", &hollow, Some(0)), ("blob", &blob, None)]
+        {
+            let (never, a) = remove_small_handles_with(occ, Some(usize::MAX));
+            let (always, b) = remove_small_handles_with(occ, Some(0));
+            assert_eq!(differences(&never, &always), Vec::<[usize; 3]>::new(), "{name}");
+            let counts = |s: HandleRepair| (s.tunnels_filled, s.bridges_cut, s.voxels_added, s.voxels_removed);
+            assert_eq!(counts(a), counts(b), "{name}");
+            match handles {
+                Some(h) => assert_eq!(a.handles_removed(), h, "{name}: {a:?}"),
+                None => assert!(a.handles_removed() > 3, "{name}: {a:?}"),
+            }
         }
     }
 
