@@ -386,9 +386,9 @@ impl MemoryEstimate {
 impl RigConfig {
     /// Estimate the memory of a scan: the grid's voxels times the bytes the method keeps per voxel
     /// (space carving 12 B: measured peak RSS of `scanrig scan` on the simulated rig grows by
-    /// 11.7 B a voxel from resolution 128 to 256; shadow carving 40 B (its peak RSS at 512^3 on the
-    /// shipped rig was 4,530 MB, 39.4 B a voxel over the frames: the per-position carving keeps
-    /// candidate and blocker state per voxel on top of the grid); photo
+    /// 11.7 B a voxel from resolution 128 to 256; shadow carving 44 B (its peak RSS at 512^3 on the
+    /// shipped rig, 512 x 512 x 431 voxels, was 4,909 MiB, 42.9 B a voxel over the frames: the
+    /// per-position carving keeps candidate and blocker state per voxel on top of the grid); photo
     /// methods and depth fusion 20 B (colours or TSDF value and weight on top); laser and structured
     /// light 28 B (free-space labels, distances, components, TSDF)),
     /// plus every frame kept: camera pixels x (RGB + mask + a u32 summed-area table) = 8 B a pixel,
@@ -399,7 +399,7 @@ impl RigConfig {
         let voxels = grid.dims.iter().fold(1u64, |a, &d| a.saturating_mul(d as u64));
         let per_voxel = match r.method {
             Method::SpaceCarving => 12,
-            Method::ShadowCarving => 40,
+            Method::ShadowCarving => 44,
             Method::VoxelColoring | Method::SpaceCarvingPhoto => 20,
             Method::DepthFusion => 20,
             Method::Laser | Method::StructuredLight => 28,
