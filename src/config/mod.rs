@@ -389,8 +389,10 @@ impl RigConfig {
     /// 11.7 B a voxel from resolution 128 to 256; shadow carving 44 B (its peak RSS at 512^3 on the
     /// shipped rig, 512 x 512 x 431 voxels, was 4,909 MiB, 42.9 B a voxel over the frames: the
     /// per-position carving keeps candidate and blocker state per voxel on top of the grid); photo
-    /// methods and depth fusion 20 B (colours or TSDF value and weight on top); laser and structured
-    /// light 28 B (free-space labels, distances, components, TSDF)),
+    /// methods and depth fusion 20 B (colours or TSDF value and weight on top); structured light 28 B
+    /// (free-space labels, distances, components, TSDF); laser 96 B (the same, and its cloud meshing
+    /// and handle removal on a solid full of voxel-scale holes at fine grids: at 512^3 its RSS had
+    /// reached 11.9 GB, 89 B a voxel, when the scan was stopped unfinished)),
     /// plus every frame kept: camera pixels x (RGB + mask + a u32 summed-area table) = 8 B a pixel,
     /// per position (and per shadow light for shadow carving).
     pub fn memory_estimate(&self) -> MemoryEstimate {
@@ -402,7 +404,8 @@ impl RigConfig {
             Method::ShadowCarving => 44,
             Method::VoxelColoring | Method::SpaceCarvingPhoto => 20,
             Method::DepthFusion => 20,
-            Method::Laser | Method::StructuredLight => 28,
+            Method::StructuredLight => 28,
+            Method::Laser => 96,
         };
         let (w, h) = match &self.camera {
             CameraConfig::Sim(c) => (c.width, c.height),
