@@ -703,33 +703,24 @@ fn block_coords_of(o: [usize; 3]) -> [usize; 3] {
 /// projected (its eight corners) and the pixels whose centres lie in the bounding rectangle of the
 /// corner images are set, plus the pixel of the voxel centre. Voxels with any corner behind the camera
 /// are skipped. Interior voxels are skipped: the projection of a solid is covered by the footprints of
-/// the voxels on its boundary.
+/// the voxels on its boundary. Each corner (a lattice point, shared by up to eight voxels) is
+/// projected once while the voxels come in order of z (as [`reprojection_iou`] passes them); any
+/// order gives the same mask.
 pub fn reproject(occupancy: &Occupancy, boundary: &[[u32; 3]], camera: &CameraModel) -> Mask {
     let grid = occupancy.grid();
     let (w, h) = (camera.width as usize, camera.height as usize);
     let mut data = vec![0u8; w * h];
     let (o, s) = (grid.origin, grid.voxel_size);
-    // The corners are lattice points, so a voxel next along x after the previous one shares that
-    // one's +x face: its four corner images are reused (the boundary comes in rows of bricks).
-    // The images of a voxel's four corners on a face normal to x (behind the camera: `None`).
-    type Face = [Option<Point2<f64>>; 4];
-    let face = |i: u32, j: u32, k: u32| -> Face {
-        let x = o[0] + f64::from(i) * s;
-        [(0, 0), (1, 0), (0, 1), (1, 1)]
-            .map(|(b, c)| camera.project(&Vector3::new(x, o[1] + f64::from(j + b) * s, o[2] + f64::from(k + c) * s)))
+    let image = |i: u32, j: u32, k: u32| {
+        camera.project(&Vector3::new(o[0] + f64::from(i) * s, o[1] + f64::from(j) * s, o[2] + f64::from(k) * s))
     };
-    let mut previous: Option<([u32; 3], Face)> = None;
+    let mut corners = CornerImages::new(grid.dims[0] + 1, grid.dims[1] + 1);
     for v in boundary {
-        let near = match previous {
-            Some((p, f)) if p[0].checked_add(1) == Some(v[0]) && p[1..] == v[1..] => f,
-            _ => face(v[0], v[1], v[2]),
-        };
-        let far = face(v[0] + 1, v[1], v[2]);
-        previous = Some((*v, far));
         let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
         let mut ok = true;
-        for q in near.iter().chain(&far) {
-            match q {
+        for n in 0..8u32 {
+            let [i, j, k] = [0, 1, 2].map(|a| v[a] + (n >> a & 1));
+            match corners.get(i, j, k, &image) {
                 Some(q) => {
                     x0 = x0.min(q.x);
                     x1 = x1.max(q.x);
@@ -760,10 +751,67 @@ pub fn reproject(occupancy: &Occupancy, boundary: &[[u32; 3]], camera: &CameraMo
     Mask::from_raw(camera.width, camera.height, data).unwrap_or_else(|_| Mask::from_fn(0, 0, |_, _| false))
 }
 
+/// The images of the lattice points (voxel corners) on two planes of constant z, each projected
+/// once and reused by the voxels that share it: `None` for a point behind the camera.
+struct CornerImages {
+    /// Lattice points along x and y.
+    width: usize,
+    planes: [CornerPlane; 2],
+}
+
+struct CornerPlane {
+    /// The plane's z lattice index (`u32::MAX`: none yet).
+    k: u32,
+    /// A point's image is held iff its `seen` equals `epoch` (bumped when the plane is reused).
+    epoch: u32,
+    seen: Vec<u32>,
+    images: Vec<Option<Point2<f64>>>,
+}
+
+impl CornerImages {
+    fn new(nx: usize, ny: usize) -> CornerImages {
+        let plane = || CornerPlane { k: u32::MAX, epoch: 0, seen: vec![0; nx * ny], images: vec![None; nx * ny] };
+        CornerImages { width: nx, planes: [plane(), plane()] }
+    }
+
+    /// The image of lattice point `(i, j, k)`, from `project` the first time it is asked for on its plane.
+    fn get(
+        &mut self,
+        i: u32,
+        j: u32,
+        k: u32,
+        project: &impl Fn(u32, u32, u32) -> Option<Point2<f64>>,
+    ) -> Option<Point2<f64>> {
+        let slot = match self.planes.iter().position(|p| p.k == k) {
+            Some(slot) => slot,
+            None => {
+                // Keep the plane next to this one (the voxels of a z layer use planes k and k + 1).
+                let slot = usize::from(self.planes[0].k.checked_add(1) == Some(k) || self.planes[0].k == k + 1);
+                let p = &mut self.planes[slot];
+                p.k = k;
+                p.epoch = p.epoch.wrapping_add(1);
+                if p.epoch == 0 {
+                    p.seen.fill(0);
+                    p.epoch = 1;
+                }
+                slot
+            }
+        };
+        let p = &mut self.planes[slot];
+        let at = j as usize * self.width + i as usize;
+        if p.seen[at] != p.epoch {
+            p.seen[at] = p.epoch;
+            p.images[at] = project(i, j, k);
+        }
+        p.images[at]
+    }
+}
+
 /// Silhouette re-projection IoU per view (footprints splatted, see [`reproject`]); views whose mask
 /// size differs from the camera's give `None`.
 pub fn reprojection_iou(occupancy: &Occupancy, views: &[View<'_>]) -> Vec<Option<f64>> {
-    let boundary = occupancy.boundary_voxels();
+    let mut boundary = occupancy.boundary_voxels();
+    boundary.sort_unstable_by_key(|v| [v[2], v[1], v[0]]);
     views.par_iter().map(|v| reproject(occupancy, &boundary, &v.camera).iou(v.mask)).collect()
 }
 
@@ -820,5 +868,14 @@ mod reproject_tests {
             .filter(|&(x, y)| ours.get(x, y) != reference[(y * 640 + x) as usize])
             .count();
         assert_eq!(differ, 0, "{differ} of {set} pixels differ");
+        // In z order, as `reprojection_iou` passes them (each corner then projected once): the same.
+        let mut sorted = boundary.clone();
+        sorted.sort_unstable_by_key(|v| [v[2], v[1], v[0]]);
+        let again = reproject(&solid, &sorted, &camera);
+        let differ = (0..480u32)
+            .flat_map(|y| (0..640u32).map(move |x| (x, y)))
+            .filter(|&(x, y)| ours.get(x, y) != again.get(x, y))
+            .count();
+        assert_eq!(differ, 0, "{differ} pixels differ in z order");
     }
 }

@@ -19,6 +19,8 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use rayon::prelude::*;
+
 use super::flow::Outcome;
 use super::report::{ground_truth, Report, Timings};
 use super::{ScanError, ScanEvent};
@@ -258,17 +260,22 @@ impl OutputDir {
 
         events(ScanEvent::Stage("export"));
         let t = Instant::now();
+        // The files are independent: written side by side (each atomically), the first error reported.
         let p = |name: &str| self.path.join(name);
-        export::write_ply_mesh(&p("model.ply"), &mesh).map_err(ScanError::Export)?;
-        export::write_stl(&p("model.stl"), &mesh).map_err(ScanError::Export)?;
-        export::write_obj(&p("model.obj"), &mesh).map_err(ScanError::Export)?;
         let centres = export::voxel_centres(&solid);
-        export::write_ply_points(&p("voxels.ply"), &centres, voxel_colours.as_ref()).map_err(ScanError::Export)?;
-        let mut files = vec!["model.ply".to_owned(), "model.stl".into(), "model.obj".into(), "voxels.ply".into()];
+        type Write<'w> = Box<dyn Fn() -> Result<(), export::ExportError> + Send + Sync + 'w>;
+        let mut writes: Vec<(&str, Write<'_>)> = vec![
+            ("model.ply", Box::new(|| export::write_ply_mesh(&p("model.ply"), &mesh))),
+            ("model.stl", Box::new(|| export::write_stl(&p("model.stl"), &mesh))),
+            ("model.obj", Box::new(|| export::write_obj(&p("model.obj"), &mesh))),
+            ("voxels.ply", Box::new(|| export::write_ply_points(&p("voxels.ply"), &centres, voxel_colours.as_ref()))),
+        ];
         if let Some(cloud) = &cloud {
-            cloud.write_ply(&p("cloud.ply")).map_err(ScanError::Export)?;
-            files.push("cloud.ply".into());
+            writes.push(("cloud.ply", Box::new(|| cloud.write_ply(&p("cloud.ply")))));
         }
+        let written: Vec<Result<(), export::ExportError>> = writes.par_iter().map(|(_, write)| write()).collect();
+        written.into_iter().collect::<Result<(), _>>().map_err(ScanError::Export)?;
+        let mut files: Vec<String> = writes.iter().map(|(name, _)| (*name).to_owned()).collect();
         timings.export = t.elapsed().as_secs_f64();
 
         events(ScanEvent::Stage("evaluate"));
