@@ -190,7 +190,8 @@ pub struct StructuredLightSummary {
     pub outliers: usize,
     /// Points removed from the merged cloud by the statistical outlier test.
     pub merged_outliers: usize,
-    /// Seconds spent on the merged cloud's outlier removal.
+    /// Seconds spent on the merged cloud's outlier removal (wall clock; it runs beside the
+    /// meshing, which `timings_s.mesh` counts).
     pub merge_s: f64,
     /// Mesh vertices moved onto the TSDF's zero crossing.
     pub refined_vertices: usize,
@@ -781,13 +782,35 @@ impl ScanFlow for StructuredLightFlow {
         timings.silhouette += self.timings.silhouette;
         timings.carve += summary.decode_s + summary.triangulate_s + summary.integrate_s;
         let views = summary.decoded.len();
-        events(ScanEvent::Stage("merging the point clouds"));
-        let t = Instant::now();
-        summary.merged_outliers = self
-            .cloud
-            .remove_statistical_outliers(self.settings.outlier_neighbours, self.settings.outlier_std_ratio)
-            .map_err(|e| sl_err(StructuredLightError::Cloud(e)))?;
-        summary.merge_s = t.elapsed().as_secs_f64();
+        events(ScanEvent::Stage("merging the point clouds and meshing"));
+        // The merged cloud's outlier removal and the mesh (from the TSDF, not from the cloud) are
+        // independent: they run side by side on the thread pool.
+        let (cloud, tsdf, smooth_radius) = (&mut self.cloud, &self.tsdf, self.smooth_radius);
+        let (outliers, meshed) = rayon::join(
+            || {
+                let t = Instant::now();
+                let removed = cloud
+                    .remove_statistical_outliers(self.settings.outlier_neighbours, self.settings.outlier_std_ratio)
+                    .map_err(|e| sl_err(StructuredLightError::Cloud(e)));
+                (removed, t.elapsed().as_secs_f64())
+            },
+            || {
+                let t = Instant::now();
+                let solid = tsdf.occupancy();
+                extract_surface_reporting(&solid, &MeshParams::smoothed(smooth_radius)).map_err(ScanError::Mesh).map(
+                    |(mut mesh, handles)| {
+                        let refined = tsdf.refine_vertices(&mut mesh);
+                        (solid, mesh, handles, refined, t.elapsed().as_secs_f64())
+                    },
+                )
+            },
+        );
+        let (removed, merge_s) = outliers;
+        let (solid, mesh, mesh_handles, refined, mesh_s) = meshed?;
+        summary.merged_outliers = removed?;
+        summary.merge_s = merge_s;
+        summary.refined_vertices = refined;
+        timings.mesh = mesh_s;
         summary.points = self.cloud.len();
         let (err_sum, err_sq, err_n) = self.errors;
         if err_n > 0 {
@@ -799,13 +822,6 @@ impl ScanFlow for StructuredLightFlow {
         } else {
             summary.decoded.iter().sum::<usize>() as f64 / (views * summary.pixels_per_view) as f64
         };
-        events(ScanEvent::Stage("mesh"));
-        let t = Instant::now();
-        let solid = self.tsdf.occupancy();
-        let (mut mesh, mesh_handles) =
-            extract_surface_reporting(&solid, &MeshParams::smoothed(self.smooth_radius)).map_err(ScanError::Mesh)?;
-        summary.refined_vertices = self.tsdf.refine_vertices(&mut mesh);
-        timings.mesh = t.elapsed().as_secs_f64();
         let visual_hull = self.hull.map(|h| {
             let occ = h.into_occupancy();
             let summary = VisualHull {
