@@ -52,8 +52,8 @@ use rayon::prelude::*;
 use super::occupancy::Occupancy;
 use super::photo_consistency::{
     centre_sample, check_inputs, facing, image_noise_sigma, is_consistent, ncc_pattern, normal_estimate,
-    render_item_buffers, surface_colour, FootprintSample, ItemBuffer, PhotoError, PhotoNoise, PhotoParams, PhotoView,
-    ViewPixels, ViewSample, VoxelCamera,
+    render_item_buffers, surface_colour, Footprint, FootprintSample, ItemBuffer, PhotoError, PhotoNoise, PhotoParams,
+    PhotoView, ViewPixels, ViewSample, VoxelCamera,
 };
 use crate::geometry::VoxelGrid;
 
@@ -600,12 +600,15 @@ fn colouring_verdict(
     v: [u32; 3],
     params: &PhotoParams,
 ) -> Option<bool> {
-    colouring_verdict_in(dense, cams, pixels, claimed, v, params, 0..cams.len())
+    colouring_verdict_in(dense, cams, pixels, claimed, v, params, 0..cams.len(), |_, _| {})
 }
 
 /// [`colouring_verdict`] consulting only `views` (increasing indices): the same verdict whenever
 /// every view left out has none of `v`'s footprint pixels both unclaimed and inside its silhouette
-/// (such a view contributes no sample and no contour-band pixel).
+/// (such a view contributes no sample and no contour-band pixel). `footprint` is called with each
+/// consulted view's index and `v`'s footprint there (views where a corner is behind the camera
+/// have none), in the order of `views`.
+#[allow(clippy::too_many_arguments)] // one voxel's visit, kept as plain arguments
 fn colouring_verdict_in(
     dense: &Dense,
     cams: &[VoxelCamera],
@@ -614,6 +617,7 @@ fn colouring_verdict_in(
     v: [u32; 3],
     params: &PhotoParams,
     views: impl Iterator<Item = usize>,
+    mut footprint: impl FnMut(usize, &Footprint),
 ) -> Option<bool> {
     let mut samples = Vec::new();
     let mut patterns = Vec::new();
@@ -622,6 +626,7 @@ fn colouring_verdict_in(
     for n in views {
         let (cam, px, marks) = (&cams[n], &pixels[n], &claimed[n]);
         let Some(fp) = cam.footprint(v) else { continue };
+        footprint(n, &fp);
         let visible = |p: usize| !marks[p];
         let FootprintSample { count, mean, rim: on_rim } = px.sample(&fp, visible);
         rim |= on_rim;
@@ -646,10 +651,16 @@ fn colouring_verdict_in(
 fn claim(cams: &[VoxelCamera], claimed: &mut [Vec<bool>], v: [u32; 3]) {
     for (cam, marks) in cams.iter().zip(claimed.iter_mut()) {
         if let Some(fp) = cam.footprint(v) {
-            for y in fp.y0..fp.y1 {
-                marks[y * cam.width + fp.x0..y * cam.width + fp.x1].fill(true);
-            }
+            claim_rect(cam.width, marks, [fp.x0, fp.x1, fp.y0, fp.y1]);
         }
+    }
+}
+
+/// Claim the pixel rectangle `[x0, x1) x [y0, y1)` in one view (`marks`: that view's claimed
+/// pixels, row-major, `width` pixels a row).
+fn claim_rect(width: usize, marks: &mut [bool], [x0, x1, y0, y1]: [usize; 4]) {
+    for y in y0..y1 {
+        marks[y * width + x0..y * width + x1].fill(true);
     }
 }
 

@@ -9,14 +9,17 @@
 //! none of its voxels can sample a pixel in this or any later layer (claims only grow, and pixels
 //! outside a silhouette are never sampled), so each would be left unseen and kept; the brick is
 //! dropped without projecting a voxel. Interior bricks go that way as soon as the surface in front
-//! of them is kept. Without a bound (a corner behind a camera) a brick is never dropped. The result
-//! is the same, voxel for voxel.
+//! of them is kept. Without a bound (a corner behind a camera) a brick is never dropped. A kept
+//! voxel claims its footprints only in the views still open in its brick (in a closed one the
+//! claim would only mark pixels already claimed or outside the silhouette), reusing the footprints
+//! its verdict computed, and each view's claims are made on their own thread. The result is the
+//! same, voxel for voxel.
 
 use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::{claim, colouring_verdict_in, ordinal_direction, restore_and_colour, Dense, PhotoModel, PhotoStats};
+use super::{claim_rect, colouring_verdict_in, ordinal_direction, restore_and_colour, Dense, PhotoModel, PhotoStats};
 use crate::pipeline::occupancy::Occupancy;
 use crate::pipeline::photo_consistency::{check_inputs, PhotoError, PhotoParams, PhotoView, ViewPixels, VoxelCamera};
 
@@ -39,6 +42,12 @@ struct Brick {
     /// rectangle); with each, the number (row-major within the rectangle) of the first pixel
     /// found unsettled there, where the next check resumes.
     open: Vec<(u32, usize)>,
+}
+
+/// A kept voxel's footprint in one view: the pixel rectangle `[x0, x1) x [y0, y1)` it claims.
+struct Claim {
+    view: u32,
+    rect: [usize; 4],
 }
 
 /// See [`super::color_voxels`].
@@ -121,23 +130,26 @@ pub(super) fn color_along(
         }
         active.retain(|&b| bricks[b].last >= layer);
         // Close the views in which a brick's rectangle is all claimed or outside the silhouette,
-        // and drop the bricks no view is open in.
-        active.retain(|&b| {
-            let brick = &mut bricks[b];
-            let rects = &brick.rects;
-            brick.open.retain_mut(|(n, from)| {
-                let n = *n as usize;
-                let Some(r) = rects[n] else { return true };
-                match pixels[n].first_unsettled(&claimed[n], r, *from) {
-                    Some(k) => {
-                        *from = k;
-                        true
-                    }
-                    None => false,
-                }
-            });
-            !brick.open.is_empty()
-        });
+        // and drop the bricks no view is open in. The bricks are checked side by side (each
+        // reads the claims only), then their open views replaced in order.
+        let still_open: Vec<Vec<(u32, usize)>> = active
+            .par_iter()
+            .map(|&b| {
+                let brick = &bricks[b];
+                brick
+                    .open
+                    .iter()
+                    .filter_map(|&(n, from)| match brick.rects[n as usize] {
+                        None => Some((n, from)),
+                        Some(r) => pixels[n as usize].first_unsettled(&claimed[n as usize], r, from).map(|k| (n, k)),
+                    })
+                    .collect()
+            })
+            .collect();
+        for (&b, open) in active.iter().zip(still_open) {
+            bricks[b].open = open;
+        }
+        active.retain(|&b| !bricks[b].open.is_empty());
         layer_voxels.clear();
         for &b in &active {
             let (lo, hi) = (bricks[b].lo, bricks[b].hi);
@@ -156,24 +168,43 @@ pub(super) fn color_along(
             continue;
         }
         stats.iterations += 1;
-        let verdicts: Vec<Option<bool>> = layer_voxels
+        // Each verdict comes with the voxel's footprints in the views it consulted, which are the
+        // claims it makes when kept.
+        let verdicts: Vec<(Option<bool>, Vec<Claim>)> = layer_voxels
             .par_iter()
             .map(|&(v, b)| {
                 let open = bricks[b].open.iter().map(|&(n, _)| n as usize);
-                colouring_verdict_in(&dense, &cams, pixels, &claimed, v, params, open)
+                let mut claims = Vec::new();
+                let verdict = colouring_verdict_in(&dense, &cams, pixels, &claimed, v, params, open, |n, fp| {
+                    claims.push(Claim { view: n as u32, rect: [fp.x0, fp.x1, fp.y0, fp.y1] })
+                });
+                (verdict, if verdict == Some(true) { claims } else { Vec::new() })
             })
             .collect();
         stats.visits += layer_voxels.len() as u64;
-        for (&(v, _), verdict) in layer_voxels.iter().zip(&verdicts) {
+        let mut kept: Vec<&[Claim]> = Vec::new();
+        for (&(v, _), (verdict, claims)) in layer_voxels.iter().zip(&verdicts) {
             match verdict {
                 Some(false) => {
                     dense.clear(v);
                     stats.carved += 1;
                 }
-                Some(true) => claim(&cams, &mut claimed, v),
+                Some(true) => kept.push(claims),
                 None => {}
             }
         }
+        // The layer's kept voxels claim their footprints, each view's claims on their own thread
+        // (a layer's voxels judge against the claims of earlier layers only). A voxel claims in
+        // the views open in its brick: in a closed one every pixel of the brick's rectangle, which
+        // holds the voxel's footprint, is claimed already or outside the silhouette, where a claim
+        // changes nothing (no sample, no contour band and no settling check reads a claim there).
+        claimed.par_iter_mut().zip(&cams).enumerate().for_each(|(n, (marks, cam))| {
+            for claims in &kept {
+                if let Ok(i) = claims.binary_search_by_key(&(n as u32), |c| c.view) {
+                    claim_rect(cam.width, marks, claims[i].rect);
+                }
+            }
+        });
     }
     (dense, stats)
 }
