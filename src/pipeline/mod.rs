@@ -61,8 +61,9 @@ pub use simplify::{simplify, simplify_in, simplify_within, Simplification, Simpl
 pub use space_carving::{carve_dense, reproject, reprojection_iou, CarveError, CarveStats, SpaceCarver, View};
 pub use topology::{remove_small_handles, HandleRepair};
 pub use voxel_coloring::{
-    carve_photo, color_voxels, color_voxels_sweeps, colour_surface, measure_noise, measure_noise_and_colour,
-    ordinal_sweeps, reprojection_error, ColouredSurface, OrdinalSweep, PhotoModel, PhotoStats,
+    carve_photo, carve_photo_measured, color_voxels, color_voxels_sweeps, colour_surface, measure_noise,
+    measure_noise_and_colour, ordinal_sweeps, reprojection_error, ColouredSurface, OrdinalSweep, PhotoModel,
+    PhotoStats,
 };
 
 /// Any error of the reconstruction layer, for callers that handle them alike (each keeps its cause).

@@ -785,7 +785,34 @@ pub fn measure_noise_and_colour(
     views: &[PhotoView<'_>],
     params: &PhotoParams,
 ) -> Result<(PhotoNoise, ColouredSurface, f64), PhotoError> {
-    check_inputs(start.grid(), views, params)?;
+    let c = incremental::Carver::checked(start, views, params)?;
+    let (spreads, surface, error) = incremental::surface_spreads(&c, views, params);
+    Ok((noise_of(views, spreads), surface, error))
+}
+
+/// Generalized space carving ([`carve_photo`]) with the threshold measured on `start` first:
+/// [`measure_noise_and_colour`], then [`carve_photo`] with `params.with_measured_noise`, giving
+/// the same noise, colouring of the start, error and model as those two calls, with the carver's
+/// state of the start (its surface's footprints, item buffers and samples in every view) built
+/// once for both. The model's `seconds` count from the start of the measurement.
+pub fn carve_photo_measured(
+    start: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+) -> Result<(PhotoNoise, ColouredSurface, f64, PhotoModel), PhotoError> {
+    let t = Instant::now();
+    let c = incremental::Carver::checked(start, views, params)?;
+    let (spreads, surface, error) = incremental::surface_spreads(&c, views, params);
+    let noise = noise_of(views, spreads);
+    let measured = params.with_measured_noise(&noise);
+    check_inputs(start.grid(), views, &measured)?;
+    let model = incremental::carve_from(c, start, views, &measured, t);
+    Ok((noise, surface, error, model))
+}
+
+/// The noise of `views` from the colour spreads of the start's surface voxels (see
+/// [`measure_noise`]).
+fn noise_of(views: &[PhotoView<'_>], mut spreads: Vec<f32>) -> PhotoNoise {
     let median = |x: &mut Vec<f32>| {
         if x.is_empty() {
             return 0.0;
@@ -795,12 +822,11 @@ pub fn measure_noise_and_colour(
     };
     let mut sigmas: Vec<f32> = views.iter().filter_map(image_noise_sigma).collect();
     let image_sigma = median(&mut sigmas);
-    let (mut spreads, surface, error) = incremental::surface_spreads(start, views, params);
     let voxels = spreads.len();
     let spread_median = median(&mut spreads);
     let mut dev: Vec<f32> = spreads.iter().map(|s| (s - spread_median).abs()).collect();
     let spread_mad = median(&mut dev);
-    Ok((PhotoNoise { image_sigma, spread_median, spread_mad, voxels }, surface, error))
+    PhotoNoise { image_sigma, spread_median, spread_mad, voxels }
 }
 
 /// Voxel colouring with the ordinal visibility constraint from `start`, visiting every voxel of the
@@ -1388,6 +1414,22 @@ mod tests {
         // The noise measurement's colouring of the start is colour_surface's.
         let (noise, surface, error) = measure_noise_and_colour(&hull, &views, &params).expect("measures");
         assert_eq!(noise, measure_noise(&hull, &views, &params).expect("measures"));
+        // Measuring and carving on one state gives what the two calls give.
+        let (n2, s2, e2, m2) = carve_photo_measured(&hull, &views, &params).expect("measures and carves");
+        let m1 = carve_photo(&hull, &views, &params.with_measured_noise(&noise)).expect("carves");
+        assert_eq!((n2, &s2, e2.to_bits()), (noise, &surface, error.to_bits()));
+        let voxels = |o: &Occupancy| {
+            let mut v = Vec::new();
+            o.for_each_occupied(|i, j, k| v.push([i, j, k]));
+            v
+        };
+        assert_eq!(voxels(&m2.occupancy), voxels(&m1.occupancy));
+        assert!(m1.stats.carved > 0, "the measured threshold carves here");
+        assert_eq!(
+            (m2.stats.carved, m2.stats.iterations, m2.stats.visits),
+            (m1.stats.carved, m1.stats.iterations, m1.stats.visits)
+        );
+        assert_eq!((&m2.surface, m2.reprojection_error.to_bits()), (&m1.surface, m1.reprojection_error.to_bits()));
         assert_eq!(surface, colour_surface(&hull, &views, &params).expect("colours"));
         assert!(close(error, reprojection_error(&grid(), &surface, &views)), "{error}");
         // Each method's error is its surface's.

@@ -145,7 +145,8 @@ pub struct PhotoReport {
     pub visits: u64,
     /// Voxels carved by photo-consistency (beyond the hull).
     pub carved: u64,
-    /// Seconds spent carving and colouring.
+    /// Seconds spent carving and colouring; for `space-carving-photo` with a measured threshold,
+    /// from the start of the noise measurement, which builds the state the carving starts from.
     pub seconds: f64,
     /// Surface voxels of the result.
     pub surface_voxels: usize,

@@ -275,7 +275,7 @@ fn judge_samples(
 }
 
 /// The carver's state over one run.
-struct Carver<'a> {
+pub(super) struct Carver<'a> {
     cams: Vec<VoxelCamera>,
     pixels: Vec<ViewPixels<'a>>,
     dense: Dense,
@@ -290,6 +290,22 @@ struct Carver<'a> {
 }
 
 impl<'a> Carver<'a> {
+    /// The state of `start` in `views` after checking the inputs (`check_inputs`, and image sizes
+    /// that fit the packed footprints' 16 bits).
+    pub(super) fn checked(
+        start: &Occupancy,
+        views: &'a [PhotoView<'a>],
+        params: &PhotoParams,
+    ) -> Result<Carver<'a>, PhotoError> {
+        check_inputs(start.grid(), views, params)?;
+        for (n, v) in views.iter().enumerate() {
+            if v.camera.width > u16::MAX as u32 || v.camera.height > u16::MAX as u32 {
+                return Err(PhotoError::ImageSize { view: n, width: v.camera.width, height: v.camera.height });
+            }
+        }
+        Ok(Carver::new(start, views))
+    }
+
     fn new(start: &Occupancy, views: &'a [PhotoView<'a>]) -> Carver<'a> {
         let grid = *start.grid();
         let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
@@ -448,11 +464,10 @@ impl<'a> Carver<'a> {
 /// that surface coloured as `super::colour_surface` colours it, with its re-projection error in
 /// `views` (the same item buffers, so the same figures).
 pub(super) fn surface_spreads(
-    start: &Occupancy,
+    c: &Carver<'_>,
     views: &[PhotoView<'_>],
     params: &PhotoParams,
 ) -> (Vec<f32>, ColouredSurface, f64) {
-    let c = Carver::new(start, views);
     let per_voxel: Vec<([u8; 3], bool, Option<f32>)> = (0..c.voxels.len() as u32)
         .into_par_iter()
         .map(|s| {
@@ -482,14 +497,20 @@ pub(super) fn carve(
     params: &PhotoParams,
 ) -> Result<PhotoModel, PhotoError> {
     let t = std::time::Instant::now();
+    let c = Carver::checked(start, views, params)?;
+    Ok(carve_from(c, start, views, params, t))
+}
+
+/// [`carve`] from `c`, the untouched state of `start` in `views` (inputs checked, also with
+/// `params`); the model's `seconds` count from `t`.
+pub(super) fn carve_from(
+    mut c: Carver<'_>,
+    start: &Occupancy,
+    views: &[PhotoView<'_>],
+    params: &PhotoParams,
+    t: std::time::Instant,
+) -> PhotoModel {
     let grid: VoxelGrid = *start.grid();
-    check_inputs(&grid, views, params)?;
-    for (n, v) in views.iter().enumerate() {
-        if v.camera.width > u16::MAX as u32 || v.camera.height > u16::MAX as u32 {
-            return Err(PhotoError::ImageSize { view: n, width: v.camera.width, height: v.camera.height });
-        }
-    }
-    let mut c = Carver::new(start, views);
     let mut stats = PhotoStats::default();
     let mut todo: Vec<u32> = (0..c.voxels.len() as u32).collect();
     while stats.iterations < params.max_iterations {
@@ -519,5 +540,5 @@ pub(super) fn carve(
         super::colour_dense_with_error(&c.dense, &c.cams, &c.pixels, views, params)
     };
     stats.seconds = t.elapsed().as_secs_f64();
-    Ok(PhotoModel { occupancy, surface, stats, reprojection_error })
+    PhotoModel { occupancy, surface, stats, reprojection_error }
 }

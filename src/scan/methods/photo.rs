@@ -15,8 +15,8 @@ use crate::config::{Method, PhotoConfig};
 use crate::geometry::VoxelGrid;
 use crate::pipeline::photo_consistency::UNSEEN_COLOUR;
 use crate::pipeline::{
-    carve_photo, color_voxels_sweeps, colour_surface, measure_noise_and_colour, ordinal_sweeps, reprojection_error,
-    ColouredSurface, Occupancy, PhotoError, PhotoParams, PhotoView, TriangleMesh,
+    carve_photo, carve_photo_measured, color_voxels_sweeps, colour_surface, measure_noise_and_colour, ordinal_sweeps,
+    reprojection_error, ColouredSurface, Occupancy, PhotoError, PhotoParams, PhotoView, TriangleMesh,
 };
 use crate::scan::report::{PhotoReport, VisualHull};
 
@@ -185,11 +185,19 @@ pub fn reconstruct_photo(
     // The threshold: fixed by the configuration, else derived from the measured noise of these
     // views over the hull's surface. Measuring it colours the hull's surface on the way (the
     // colouring only depends on `min_cos`, not on the threshold).
+    // Generalized space carving measures on the state it then carves from, built once.
+    let mut measured_model = None;
     let (params, noise, hull_coloured) = match config.threshold {
         Some(_) => (photo_params(config), None, None),
         None => {
             let p = photo_params(config);
-            let (noise, surface, error) = measure_noise_and_colour(hull, used, &p)?;
+            let (noise, surface, error) = if method == Method::VoxelColoring {
+                measure_noise_and_colour(hull, used, &p)?
+            } else {
+                let (noise, surface, error, model) = carve_photo_measured(hull, used, &p)?;
+                measured_model = Some(model);
+                (noise, surface, error)
+            };
             tracing::info!(threshold = noise.threshold(), image_sigma = noise.image_sigma, "photo threshold measured");
             (p.with_measured_noise(&noise), Some(noise), Some((surface, error)))
         }
@@ -203,7 +211,10 @@ pub fn reconstruct_photo(
     };
     // Without a measurement, the hull is coloured alongside the carving (they are independent).
     let (model, (hull_surface, hull_reprojection)) = match hull_coloured {
-        Some(h) => (carve()?, h),
+        Some(h) => match measured_model {
+            Some(m) => (m, h),
+            None => (carve()?, h),
+        },
         None => {
             let colour_hull = || -> Result<(ColouredSurface, f64), PhotoError> {
                 let surface = colour_surface(hull, used, &params)?;
