@@ -45,6 +45,7 @@ struct Brick {
 }
 
 /// A kept voxel's footprint in one view: the pixel rectangle `[x0, x1) x [y0, y1)` it claims.
+#[derive(Clone, Copy)]
 struct Claim {
     view: u32,
     rect: [usize; 4],
@@ -168,17 +169,18 @@ pub(super) fn color_along(
             continue;
         }
         stats.iterations += 1;
-        // Each verdict comes with the voxel's footprints in the views it consulted, which are the
-        // claims it makes when kept.
+        // Each kept voxel's verdict comes with its footprints in the views it consulted, which are
+        // the claims it makes; they are gathered in a scratch list per worker and copied out only
+        // for a kept voxel.
         let verdicts: Vec<(Option<bool>, Vec<Claim>)> = layer_voxels
             .par_iter()
-            .map(|&(v, b)| {
+            .map_init(Vec::new, |scratch, &(v, b)| {
+                scratch.clear();
                 let open = bricks[b].open.iter().map(|&(n, _)| n as usize);
-                let mut claims = Vec::new();
                 let verdict = colouring_verdict_in(&dense, &cams, pixels, &claimed, v, params, open, |n, fp| {
-                    claims.push(Claim { view: n as u32, rect: [fp.x0, fp.x1, fp.y0, fp.y1] })
+                    scratch.push(Claim { view: n as u32, rect: [fp.x0, fp.x1, fp.y0, fp.y1] })
                 });
-                (verdict, if verdict == Some(true) { claims } else { Vec::new() })
+                (verdict, if verdict == Some(true) { scratch.clone() } else { Vec::new() })
             })
             .collect();
         stats.visits += layer_voxels.len() as u64;
