@@ -90,13 +90,23 @@ impl TriangleMesh {
     /// and its reverse exactly once (so every undirected edge is shared by exactly two triangles).
     /// Returns the number of offending edges.
     pub fn open_or_misoriented_edges(&self) -> usize {
-        let mut directed: HashMap<(u32, u32), u32> = HashMap::with_capacity(self.triangles.len() * 3);
-        for t in &self.triangles {
-            for e in 0..3 {
-                *directed.entry((t[e], t[(e + 1) % 3])).or_insert(0) += 1;
+        // The directed edges as sorted keys (`from << 32 | to`), then each distinct one with its
+        // count, looked up reversed by binary search.
+        let mut keys: Vec<u64> = self
+            .triangles
+            .par_iter()
+            .flat_map_iter(|t| (0..3).map(move |e| u64::from(t[e]) << 32 | u64::from(t[(e + 1) % 3])))
+            .collect();
+        keys.par_sort_unstable();
+        let mut counted: Vec<(u64, u32)> = Vec::with_capacity(keys.len() / 2 + 1);
+        for k in keys {
+            match counted.last_mut() {
+                Some((last, n)) if *last == k => *n += 1,
+                _ => counted.push((k, 1)),
             }
         }
-        directed.iter().filter(|(&(a, b), &n)| n != 1 || directed.get(&(b, a)).copied() != Some(1)).count()
+        let count_of = |k: u64| counted.binary_search_by_key(&k, |e| e.0).map_or(0, |i| counted[i].1);
+        counted.par_iter().filter(|&&(k, n)| n != 1 || count_of(k.rotate_left(32)) != 1).count()
     }
 }
 
@@ -195,15 +205,16 @@ fn march(occupancy: &Occupancy, params: &MeshParams) -> Result<TriangleMesh, Mes
     // Lattice positions first (relaxed there), metres at the end.
     let mut lattice = vec![[0f32; 3]; keys.len()];
     let mut triangles = Vec::with_capacity(parts.iter().map(|p| p.1.len()).sum());
-    for (verts, tris) in &parts {
-        let global: Vec<u32> = verts
-            .iter()
-            .map(|(k, p)| {
-                let g = keys.binary_search(k).unwrap_or(0);
-                lattice[g] = *p;
-                g as u32
-            })
-            .collect();
+    // Each block's vertices found among the keys side by side; the positions and triangles are
+    // then gathered in block order.
+    let globals: Vec<Vec<u32>> = parts
+        .par_iter()
+        .map(|(verts, _)| verts.iter().map(|(k, _)| keys.binary_search(k).unwrap_or(0) as u32).collect())
+        .collect();
+    for ((verts, tris), global) in parts.iter().zip(&globals) {
+        for ((_, p), &g) in verts.iter().zip(global) {
+            lattice[g as usize] = *p;
+        }
         triangles.extend(tris.iter().map(|t| t.map(|i| global[i as usize])));
     }
     if params.relax_iterations > 0 {
@@ -467,7 +478,9 @@ fn components(mesh: &TriangleMesh) -> (Vec<u32>, HashMap<u32, f64>) {
             }
         }
     }
-    let mut volume: HashMap<u32, f64> = HashMap::new();
+    // Each component's volume summed at its root (in triangle order), then gathered.
+    let mut at_root = vec![0.0f64; n];
+    let mut is_root = vec![false; n];
     let mut comp = Vec::with_capacity(mesh.triangles.len());
     for t in &mesh.triangles {
         if !valid(t) {
@@ -479,9 +492,11 @@ fn components(mesh: &TriangleMesh) -> (Vec<u32>, HashMap<u32, f64>) {
         let v = (a[0] * (b[1] * d[2] - b[2] * d[1]) - a[1] * (b[0] * d[2] - b[2] * d[0])
             + a[2] * (b[0] * d[1] - b[1] * d[0]))
             / 6.0;
-        *volume.entry(c).or_insert(0.0) += v;
+        at_root[c as usize] += v;
+        is_root[c as usize] = true;
         comp.push(c);
     }
+    let volume = (0..n as u32).filter(|&c| is_root[c as usize]).map(|c| (c, at_root[c as usize])).collect();
     (comp, volume)
 }
 
@@ -521,12 +536,16 @@ impl TriangleMesh {
                 edges.push((a.min(b), a.max(b)));
             }
         }
-        edges.par_sort_unstable();
-        edges.dedup();
-        let (_, volume) = components(self);
+        // The edges, the components and the open edges are counted side by side.
+        let ((), ((_, volume), open)) = rayon::join(
+            || {
+                edges.par_sort_unstable();
+                edges.dedup();
+            },
+            || rayon::join(|| components(self), || self.open_or_misoriented_edges()),
+        );
         let vertices = used.iter().filter(|&&u| u).count();
         let euler = vertices as i64 - edges.len() as i64 + self.triangles.len() as i64;
-        let open = self.open_or_misoriented_edges();
         MeshTopology {
             triangles: self.triangles.len(),
             vertices,
@@ -607,6 +626,40 @@ mod tests {
     fn sphere(n: u32, radius: f64) -> Occupancy {
         let g = VoxelGrid::from_resolution(&Aabb { min: [-1.0; 3], max: [1.0, 1.0, 0.8] }, n);
         Occupancy::from_fn(g, move |p| (p - Vector3::new(0.05, -0.1, 0.0)).norm() < radius)
+    }
+
+    /// The count of edges that are not used once each way, as a map of directed edges counts them.
+    fn open_edges_by_map(mesh: &TriangleMesh) -> usize {
+        let mut directed: HashMap<(u32, u32), u32> = HashMap::new();
+        for t in &mesh.triangles {
+            for e in 0..3 {
+                *directed.entry((t[e], t[(e + 1) % 3])).or_insert(0) += 1;
+            }
+        }
+        directed.iter().filter(|(&(a, b), &n)| n != 1 || directed.get(&(b, a)).copied() != Some(1)).count()
+    }
+
+    /// Open, flipped and repeated triangles are each counted as a map of directed edges counts them,
+    /// and the topology sees the parts and the hole.
+    #[test]
+    fn open_and_misoriented_edges_are_counted_exactly() {
+        let closed = extract_surface(&sphere(16, 0.6), &MeshParams::default()).expect("mesh");
+        assert_eq!(closed.open_or_misoriented_edges(), 0);
+        let mut broken = closed.clone();
+        broken.triangles.remove(5);
+        let flipped = broken.triangles[40];
+        broken.triangles[40] = [flipped[0], flipped[2], flipped[1]];
+        broken.triangles.push(broken.triangles[90]);
+        // A second, open part far away: one lone triangle.
+        let n = broken.vertices.len() as u32;
+        broken.vertices.extend([[5.0, 0.0, 0.0], [6.0, 0.0, 0.0], [5.0, 1.0, 0.0]]);
+        broken.triangles.push([n, n + 1, n + 2]);
+        let open = broken.open_or_misoriented_edges();
+        assert!(open >= 3 + 6 + 3 + 3, "{open}");
+        assert_eq!(open, open_edges_by_map(&broken));
+        let t = broken.topology();
+        assert_eq!((t.components, t.open_or_misoriented_edges, t.genus), (2, open, None));
+        assert_eq!(closed.topology().components, 1);
     }
 
     #[test]

@@ -236,7 +236,6 @@ impl OutputDir {
             // A view whose mask does not fit its camera cannot reach here (carving rejected it).
             || -> Vec<f64> { reprojection_iou(&solid, &views).into_iter().map(|v| v.unwrap_or(0.0)).collect() },
         );
-        let mesh_topology = mesh.topology();
         timings.mesh += t.elapsed().as_secs_f64();
         if let Some(s) = &mesh_simplification {
             tracing::info!(
@@ -273,7 +272,11 @@ impl OutputDir {
         if let Some(cloud) = &cloud {
             writes.push(("cloud.ply", Box::new(|| cloud.write_ply(&p("cloud.ply")))));
         }
-        let written: Vec<Result<(), export::ExportError>> = writes.par_iter().map(|(_, write)| write()).collect();
+        // The mesh's topology (for the report) is counted meanwhile: it reads what the writes read.
+        let (written, mesh_topology) = rayon::join(
+            || -> Vec<Result<(), export::ExportError>> { writes.par_iter().map(|(_, write)| write()).collect() },
+            || mesh.topology(),
+        );
         written.into_iter().collect::<Result<(), _>>().map_err(ScanError::Export)?;
         let mut files: Vec<String> = writes.iter().map(|(name, _)| (*name).to_owned()).collect();
         timings.export = t.elapsed().as_secs_f64();

@@ -168,7 +168,7 @@ pub struct Timings {
     pub carve: f64,
     /// Surface extraction.
     pub mesh: f64,
-    /// Writing results.
+    /// Writing results (the mesh's topology for the report is counted meanwhile).
     pub export: f64,
     /// Start to finish.
     pub total: f64,
