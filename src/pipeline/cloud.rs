@@ -1144,39 +1144,52 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
     //    the nearest point found by a Dijkstra wave over the voxels from the band (a vector distance
     //    transform), up to `hoppe_reach_voxels` from the band.
     let mut label = vec![0i8; grid.len()];
-    let mut near = vec![u32::MAX; grid.len()];
-    let mut dist2 = vec![f32::INFINITY; grid.len()];
+    // Per voxel, side by side so that the wave reads both in one access: the squared distance (m²)
+    // to its nearest point found so far, and that point (`NO_POINT`: none), with `BAND` set on the
+    // band's voxels (the wave starts from them and never enters them).
+    const BAND: u32 = 1 << 31;
+    const NO_POINT: u32 = BAND - 1;
+    let points = sdf.index.points();
+    if points.len() >= NO_POINT as usize {
+        return Err(CloudError::Parameter {
+            name: "cloud points",
+            value: points.len() as f64,
+            expected: "fewer than 2^31 - 1",
+        });
+    }
+    let mut wave = vec![(f32::INFINITY, NO_POINT); grid.len()];
     let reach2 = ((params.hoppe_reach_voxels * vs).powi(2)) as f32;
     let mut heap = BucketQueue::new(reach2);
     for (&idx, &(sign, p, d2)) in band.iter().zip(&band_eval) {
         label[idx] = sign;
+        wave[idx].1 = BAND | NO_POINT;
         if p != u32::MAX {
-            near[idx] = p;
-            dist2[idx] = d2;
+            wave[idx] = (d2, BAND | p);
             heap.push(d2, idx as u32);
         }
     }
-    let points = sdf.index.points();
     let normals = &sdf.normals;
     // Voxel centres per axis, as `grid.centre` gives them in f32.
     let centres: [Vec<f32>; 3] =
         [0, 1, 2].map(|a| (0..dims[a]).map(|i| (grid.origin[a] + (i as f64 + 0.5) * grid.voxel_size) as f32).collect());
     while let Some((d2, idx)) = heap.pop() {
         let idx = idx as usize;
-        if d2 > dist2[idx] {
+        let (best, from) = wave[idx];
+        if d2 > best {
             continue;
         }
+        let from = from & !BAND;
         let [i, j, k] = unravel(idx);
-        let p = points[near[idx] as usize];
+        let p = points[from as usize];
         let mut offer = |n: usize, c: [usize; 3]| {
-            if in_band[n] {
+            let w = &mut wave[n];
+            if w.1 & BAND != 0 {
                 return;
             }
             let q = [centres[0][c[0]], centres[1][c[1]], centres[2][c[2]]];
             let d2 = (q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2) + (q[2] - p[2]).powi(2);
-            if d2 < dist2[n] && d2 <= reach2 {
-                dist2[n] = d2;
-                near[n] = near[idx];
+            if d2 < w.0 && d2 <= reach2 {
+                *w = (d2, from);
                 heap.push(d2, n as u32);
             }
         };
@@ -1199,16 +1212,17 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
             offer(idx + dims[0] * dims[1], [i, j, k + 1]);
         }
     }
-    label.par_iter_mut().enumerate().for_each(|(idx, l)| {
-        if in_band[idx] || near[idx] == u32::MAX {
+    label.par_iter_mut().zip(&wave).enumerate().for_each(|(idx, (l, &(_, from)))| {
+        if from & BAND != 0 || from == NO_POINT {
             return;
         }
         let [i, j, k] = unravel(idx);
         let c = grid.centre(i, j, k);
-        let (x, n) = (points[near[idx] as usize], normals[near[idx] as usize]);
+        let (x, n) = (points[from as usize], normals[from as usize]);
         let d = (c.x as f32 - x[0]) * n[0] + (c.y as f32 - x[1]) * n[1] + (c.z as f32 - x[2]) * n[2];
         *l = if d < 0.0 { -1 } else { 1 };
     });
+    drop(wave);
     // 4. Beyond that reach: what the seeded outer faces reach through unlabelled voxels is outside
     //    (the air around the object and in its open concavities), the rest is enclosed: inside.
     let mut queue = VecDeque::with_capacity(grid.len() / 4);
