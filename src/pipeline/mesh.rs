@@ -264,7 +264,9 @@ fn relax_on_edges(lattice: &mut [[f32; 3]], keys: &[u64], pitch: [u64; 3], trian
             (start, d)
         })
         .collect();
-    let mut next = lattice.to_vec();
+    // Two buffers read and written in turn (a vertex without neighbours holds its start in both).
+    let mut current = lattice.to_vec();
+    let mut next = current.clone();
     for _ in 0..iterations {
         next.par_iter_mut().enumerate().for_each(|(v, out)| {
             let ring = &adj[count[v] as usize..count[v + 1] as usize];
@@ -274,18 +276,19 @@ fn relax_on_edges(lattice: &mut [[f32; 3]], keys: &[u64], pitch: [u64; 3], trian
             let mut mean = [0f32; 3];
             for &u in ring {
                 for a in 0..3 {
-                    mean[a] += lattice[u as usize][a];
+                    mean[a] += current[u as usize][a];
                 }
             }
             let (start, d) = edges[v];
-            let target = [0, 1, 2].map(|a| 0.5 * (lattice[v][a] + mean[a] / ring.len() as f32));
+            let target = [0, 1, 2].map(|a| 0.5 * (current[v][a] + mean[a] / ring.len() as f32));
             let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
             let t = (0..3).map(|a| (target[a] - start[a]) * d[a]).sum::<f32>() / d2;
             let t = t.clamp(EDGE_MARGIN, 1.0 - EDGE_MARGIN);
             *out = [0, 1, 2].map(|a| start[a] + t * d[a]);
         });
-        lattice.copy_from_slice(&next);
+        std::mem::swap(&mut current, &mut next);
     }
+    lattice.copy_from_slice(&current);
 }
 
 /// Does the cell block `cb` (cells `[8 cb, 8 cb + 8)`) possibly hold surface?
