@@ -299,21 +299,56 @@ pub fn hausdorff_outliers(
     samples: usize,
     beyond_m: f64,
 ) -> Option<(Hausdorff, Vec<[f32; 3]>)> {
-    let directed = |from: &TriangleMesh, to: &TriangleIndex<'_>, seed: u64| {
-        let mut pts: Vec<[f32; 3]> = from.vertices.clone();
-        pts.extend(sample_mesh(from, samples, seed));
-        let d = to.distances(&pts);
+    hausdorff_outliers_to(a, &Reference::new(b, samples)?, beyond_m)
+}
+
+/// A surface prepared to be measured against by [`hausdorff_outliers_to`]: its triangle index and
+/// its own samples (its vertices, then its area samples; metres, the mesh's frame). Preparing it
+/// depends on that surface alone, so a caller that knows it early (a simplification's input) can
+/// prepare it while the other surface is still being made.
+#[derive(Debug)]
+pub struct Reference<'a> {
+    index: TriangleIndex<'a>,
+    points: Vec<[f32; 3]>,
+    /// Area samples per surface, for the other surface too.
+    samples: usize,
+}
+
+/// Seeds of the area samples of the measured surface and of the reference.
+const SEEDS: [u64; 2] = [11, 12];
+
+impl<'a> Reference<'a> {
+    /// Index `mesh` and sample it at its vertices plus `samples` area samples; `None` when it has no
+    /// triangle.
+    pub fn new(mesh: &'a TriangleMesh, samples: usize) -> Option<Reference<'a>> {
+        let (index, area) = rayon::join(|| TriangleIndex::new(mesh), || sample_mesh(mesh, samples, SEEDS[1]));
+        let mut points = Vec::with_capacity(mesh.vertices.len() + area.len());
+        points.extend_from_slice(&mesh.vertices);
+        points.extend(area);
+        Some(Reference { index: index?, points, samples })
+    }
+}
+
+/// [`hausdorff_outliers`] with the second surface prepared ([`Reference`]); `a` gets as many area
+/// samples as the reference has.
+pub fn hausdorff_outliers_to(a: &TriangleMesh, b: &Reference<'_>, beyond_m: f64) -> Option<(Hausdorff, Vec<[f32; 3]>)> {
+    let measure = |pts: &[[f32; 3]], to: &TriangleIndex<'_>| {
+        let d = to.distances(pts);
         let max = d.iter().copied().fold(0.0, f64::max);
         let far: Vec<[f32; 3]> = pts.iter().zip(&d).filter(|(_, &x)| x > beyond_m).map(|(p, _)| *p).collect();
         (max, d.iter().sum::<f64>(), d.len(), far)
     };
-    // Each direction starts as soon as its target is indexed: while the larger mesh is indexed,
-    // the samples of that mesh are measured against the smaller one.
+    // Each direction starts as soon as its own part is ready: `a`'s samples are measured against
+    // the reference while `a` is indexed for the reference's samples.
     let (to_b, to_a) = rayon::join(
-        || TriangleIndex::new(b).map(|ib| directed(a, &ib, 11)),
-        || TriangleIndex::new(a).map(|ia| directed(b, &ia, 12)),
+        || {
+            let mut pts: Vec<[f32; 3]> = a.vertices.clone();
+            pts.extend(sample_mesh(a, b.samples, SEEDS[0]));
+            measure(&pts, &b.index)
+        },
+        || TriangleIndex::new(a).map(|ia| measure(&b.points, &ia)),
     );
-    let ((f, fs, fn_, mut far), (g, gs, gn, far_b)) = (to_b?, to_a?);
+    let ((f, fs, fn_, mut far), (g, gs, gn, far_b)) = (to_b, to_a?);
     far.extend(far_b);
     let h = Hausdorff {
         forward_m: f,

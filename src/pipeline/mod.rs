@@ -45,7 +45,9 @@ pub use cloud::{
 pub use coloring::{color_vertices, ColorView};
 pub use depth_fusion::{DepthFusionError, FusionParams, IntegrateStats, Tsdf};
 pub use export::ExportError;
-pub use hausdorff::{hausdorff_distance, hausdorff_outliers, Hausdorff, TriangleIndex};
+pub use hausdorff::{
+    hausdorff_distance, hausdorff_outliers, hausdorff_outliers_to, Hausdorff, Reference, TriangleIndex,
+};
 pub use mesh::{
     extract_surface, extract_surface_reporting, keep_main_component, MeshCleanStats, MeshError, MeshParams,
     MeshTopology, TriangleMesh,
