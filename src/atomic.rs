@@ -3,7 +3,8 @@
 //! destination, and the rename is made durable by syncing the directory. A reader, a crash or a full
 //! disk never leaves a partial file under the final name.
 
-use std::io::Write;
+use std::fs::File;
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 /// An atomic write failed; names the destination.
@@ -25,6 +26,17 @@ pub fn is_atomic_temp(name: &str) -> bool {
 
 /// Write `bytes` to `path` atomically (temporary file in the same directory, fsync, rename).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), AtomicWriteError> {
+    write_atomic_with(path, |w| w.write_all(bytes))
+}
+
+/// Write `path` atomically from `produce`, which streams the file's bytes into a buffered writer
+/// on the temporary file, so a large file is never held whole in memory. An error from `produce`
+/// (or from creating, flushing, syncing or renaming) removes the temporary file and leaves any
+/// previous file under `path` as it was.
+pub fn write_atomic_with(
+    path: &Path,
+    produce: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
+) -> Result<(), AtomicWriteError> {
     let io = |source| AtomicWriteError { path: path.to_path_buf(), source };
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
@@ -33,12 +45,13 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), AtomicWriteError> {
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
     let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
     let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
+        let mut w = BufWriter::with_capacity(WRITE_BUFFER, File::create(&tmp)?);
+        produce(&mut w)?;
+        let f = w.into_inner().map_err(|e| e.into_error())?;
         f.sync_all()?;
         drop(f);
         std::fs::rename(&tmp, path)?;
-        if let Ok(d) = std::fs::File::open(&dir) {
+        if let Ok(d) = File::open(&dir) {
             // Persist the rename; not every platform supports syncing a directory.
             let _ = d.sync_all();
         }
@@ -49,6 +62,9 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), AtomicWriteError> {
     }
     result.map_err(io)
 }
+
+/// Bytes [`write_atomic_with`] buffers before each write to the file.
+const WRITE_BUFFER: usize = 1 << 20;
 
 #[cfg(test)]
 mod tests {
@@ -70,5 +86,32 @@ mod tests {
         let err = write_atomic(&dir.path().join("missing/dir/file"), b"x").expect_err("no such directory");
         assert!(err.to_string().contains("missing/dir/file"), "{err}");
         assert!(is_atomic_temp(".report.json.tmp-1") && !is_atomic_temp("pos_000.png"));
+    }
+
+    #[test]
+    fn a_stream_that_fails_midway_leaves_the_previous_file_and_no_temporary() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("voxels.ply");
+        write_atomic(&path, b"previous").expect("write");
+        // More than the buffer holds, so part of it reached the temporary file before the error.
+        let err = write_atomic_with(&path, |w| {
+            w.write_all(&vec![7u8; 3 * WRITE_BUFFER])?;
+            Err(std::io::Error::new(std::io::ErrorKind::StorageFull, "disk full"))
+        })
+        .expect_err("the producer failed");
+        assert!(err.to_string().contains("voxels.ply"), "{err}");
+        assert_eq!(err.source.kind(), std::io::ErrorKind::StorageFull);
+        assert_eq!(std::fs::read(&path).expect("read"), b"previous");
+        assert_eq!(std::fs::read_dir(dir.path()).expect("list").count(), 1);
+        write_atomic_with(&path, |w| {
+            for i in 0..100_000u32 {
+                w.write_all(&i.to_le_bytes())?;
+            }
+            Ok(())
+        })
+        .expect("stream");
+        let bytes = std::fs::read(&path).expect("read");
+        assert_eq!(bytes.len(), 400_000);
+        assert_eq!(&bytes[399_996..], &99_999u32.to_le_bytes());
     }
 }

@@ -38,7 +38,7 @@ use super::export::ExportError;
 use super::mesh::{extract_surface_reporting, MeshError, MeshParams, TriangleMesh};
 use super::occupancy::Occupancy;
 use super::topology::HandleRepair;
-use crate::atomic::write_atomic;
+use crate::atomic::write_atomic_with;
 use crate::geometry::{turntable_rotation, Aabb, VoxelGrid};
 
 /// Errors of point-cloud operations; each names the offending value.
@@ -368,39 +368,46 @@ impl PointCloud {
         Ok(PointCloud { points, normals, colors })
     }
 
-    /// Encode as binary little-endian PLY: `x y z` (float, metres), then `nx ny nz` (float) and
-    /// `red green blue` (uchar) when present.
-    pub fn ply_bytes(&self) -> Vec<u8> {
-        let mut out = Vec::with_capacity(300 + self.points.len() * 27);
-        out.extend_from_slice(b"ply\nformat binary_little_endian 1.0\ncomment scanrig point cloud, metres\n");
-        out.extend_from_slice(format!("element vertex {}\n", self.points.len()).as_bytes());
-        out.extend_from_slice(b"property float x\nproperty float y\nproperty float z\n");
+    /// Encode as binary little-endian PLY into `w`: `x y z` (float, metres), then `nx ny nz`
+    /// (float) and `red green blue` (uchar) when present.
+    pub fn encode_ply<W: std::io::Write>(&self, w: &mut W) -> std::io::Result<()> {
+        w.write_all(b"ply\nformat binary_little_endian 1.0\ncomment scanrig point cloud, metres\n")?;
+        writeln!(w, "element vertex {}", self.points.len())?;
+        w.write_all(b"property float x\nproperty float y\nproperty float z\n")?;
         if self.normals.is_some() {
-            out.extend_from_slice(b"property float nx\nproperty float ny\nproperty float nz\n");
+            w.write_all(b"property float nx\nproperty float ny\nproperty float nz\n")?;
         }
         if self.colors.is_some() {
-            out.extend_from_slice(b"property uchar red\nproperty uchar green\nproperty uchar blue\n");
+            w.write_all(b"property uchar red\nproperty uchar green\nproperty uchar blue\n")?;
         }
-        out.extend_from_slice(b"end_header\n");
+        w.write_all(b"end_header\n")?;
         for (i, p) in self.points.iter().enumerate() {
-            for x in p {
-                out.extend_from_slice(&x.to_le_bytes());
-            }
-            if let Some(ns) = &self.normals {
-                for x in ns[i] {
-                    out.extend_from_slice(&x.to_le_bytes());
-                }
+            let mut rec = [0u8; 27];
+            let mut len = 0;
+            let normal = self.normals.as_ref().map(|ns| ns[i]);
+            for x in p.iter().chain(normal.iter().flatten()) {
+                rec[len..len + 4].copy_from_slice(&x.to_le_bytes());
+                len += 4;
             }
             if let Some(cs) = &self.colors {
-                out.extend_from_slice(&cs[i]);
+                rec[len..len + 3].copy_from_slice(&cs[i]);
+                len += 3;
             }
+            w.write_all(&rec[..len])?;
         }
+        Ok(())
+    }
+
+    /// Everything [`PointCloud::encode_ply`] writes, in memory (for a download).
+    pub fn ply_bytes(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(300 + self.points.len() * 27);
+        self.encode_ply(&mut out).expect("writing into memory cannot fail");
         out
     }
 
-    /// Write as binary PLY (see [`PointCloud::ply_bytes`]), atomically.
+    /// Write as binary PLY (see [`PointCloud::encode_ply`]), atomically, streamed to the file.
     pub fn write_ply(&self, path: &Path) -> Result<(), ExportError> {
-        Ok(write_atomic(path, &self.ply_bytes())?)
+        Ok(write_atomic_with(path, |w| self.encode_ply(w))?)
     }
 }
 
