@@ -223,7 +223,11 @@ impl OutputDir {
         let views: Vec<View<'_>> = silhouettes.iter().map(|(camera, mask)| View { camera: *camera, mask }).collect();
         let ((mesh, mesh_cleanup, mesh_simplification), reprojection) = rayon::join(
             || {
-                let (mesh, mesh_cleanup) = keep_main_component(&mesh);
+                // The raw mesh goes once its main component is copied out: it is not read again,
+                // and the simplifier's state is the stage's peak memory.
+                let raw = mesh;
+                let (mesh, mesh_cleanup) = keep_main_component(&raw);
+                drop(raw);
                 if mesh_cleanup.triangles_removed > 0 {
                     tracing::info!(?mesh_cleanup, "mesh cleaned to its main component");
                 }
@@ -261,13 +265,12 @@ impl OutputDir {
         let t = Instant::now();
         // The files are independent: written side by side (each atomically), the first error reported.
         let p = |name: &str| self.path.join(name);
-        let centres = export::voxel_centres(&solid);
         type Write<'w> = Box<dyn Fn() -> Result<(), export::ExportError> + Send + Sync + 'w>;
         let mut writes: Vec<(&str, Write<'_>)> = vec![
             ("model.ply", Box::new(|| export::write_ply_mesh(&p("model.ply"), &mesh))),
             ("model.stl", Box::new(|| export::write_stl(&p("model.stl"), &mesh))),
             ("model.obj", Box::new(|| export::write_obj(&p("model.obj"), &mesh))),
-            ("voxels.ply", Box::new(|| export::write_ply_points(&p("voxels.ply"), &centres, voxel_colours.as_ref()))),
+            ("voxels.ply", Box::new(|| export::write_ply_voxels(&p("voxels.ply"), &solid, voxel_colours.as_ref()))),
         ];
         if let Some(cloud) = &cloud {
             writes.push(("cloud.ply", Box::new(|| cloud.write_ply(&p("cloud.ply")))));
