@@ -733,21 +733,24 @@ fn simplify_kept<R: Send>(
     let mut seam = vec![false; n];
     if regions > 1 {
         let split = Split::new(&original, regions);
-        let done: Vec<(State, SimplifyStats)> = (0..regions)
-            .into_par_iter()
-            .map(|r| {
-                let (sub, sub_state, sub_locked) = split.region(&original, &state, r, keep);
-                let mut work = Work::new(&sub, sub_state, sub_locked, bound2);
-                let mut sub_stats = SimplifyStats::default();
-                work.run(&mut queue_edges(&work, params.max_error_m, |_, _| true), &mut sub_stats);
-                (work.into_state(), sub_stats)
-            })
-            .collect();
-        for (r, (sub_state, sub_stats)) in done.into_iter().enumerate() {
-            split.absorb(r, sub_state, &mut state);
+        // Each region's result goes into the whole mesh's state as soon as it is done, so only the
+        // regions being worked on hold a state of their own. Regions own disjoint vertices and
+        // triangles, so the order they finish in does not change the result.
+        let shared = std::sync::Mutex::new((state, stats));
+        (0..regions).into_par_iter().for_each(|r| {
+            let (sub, sub_state, sub_locked) = split.region(&original, &shared, r, keep);
+            let mut work = Work::new(&sub, sub_state, sub_locked, bound2);
+            let mut sub_stats = SimplifyStats::default();
+            work.run(&mut queue_edges(&work, params.max_error_m, |_, _| true), &mut sub_stats);
+            let sub_state = work.into_state();
+            drop(sub);
+            let mut guard = shared.lock().unwrap_or_else(|e| e.into_inner());
+            let (state, stats) = &mut *guard;
+            split.absorb(r, sub_state, state);
             stats.collapses += sub_stats.collapses;
             stats.refused_by_distance += sub_stats.refused_by_distance;
-        }
+        });
+        (state, stats) = shared.into_inner().unwrap_or_else(|e| e.into_inner());
         seam = split.seam;
     }
     // The whole mesh, nothing locked: everything when it was not split, else the edges at the cuts.
@@ -838,12 +841,23 @@ impl Split {
 
     /// Region `r` as a mesh of its own (its triangles, renumbered), its state and locked vertices:
     /// those on the seam and those `keep` marks (indexed like the whole mesh).
-    fn region(&self, original: &Original, state: &State, r: usize, keep: &[bool]) -> (Original, State, Vec<bool>) {
+    /// The quadrics are read from the whole mesh's state (`shared`, with the stats), locked only
+    /// while they are copied.
+    fn region(
+        &self,
+        original: &Original,
+        shared: &std::sync::Mutex<(State, SimplifyStats)>,
+        r: usize,
+        keep: &[bool],
+    ) -> (Original, State, Vec<bool>) {
         let (vertices, triangles) = (&self.vertices[r], &self.triangles[r]);
         let tris: Vec<[u32; 3]> =
             triangles.iter().map(|&t| original.tris[t as usize].map(|v| self.local[v as usize])).collect();
         let sub = Original::new(vertices.iter().map(|&v| original.pos[v as usize]).collect(), tris);
-        let quadric = vertices.iter().map(|&v| state.quadric[v as usize]).collect();
+        let quadric = {
+            let guard = shared.lock().unwrap_or_else(|e| e.into_inner());
+            vertices.iter().map(|&v| guard.0.quadric[v as usize]).collect()
+        };
         let sub_state = State::start(&sub, quadric);
         let locked = vertices.iter().map(|&v| self.seam[v as usize] || keep[v as usize]).collect();
         (sub, sub_state, locked)
