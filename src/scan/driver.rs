@@ -123,6 +123,13 @@ pub(crate) fn drive<F: ScanFlow>(mut flow: F, job: Job<'_>, world: Option<SimWor
         }
     }
 
+    // Ground truth on simulated rigs: the scene's occupancy on the grid depends on nothing the scan
+    // measures, so it is computed while the views are processed and acquired, not after the last.
+    let truth_job = world.as_ref().map(|w| {
+        let scene = w.scene().clone();
+        std::thread::spawn(move || Occupancy::from_fn(grid, |p| scene.contains(&p)))
+    });
+
     // Stored views first, in position order.
     let mut last_view_at = Instant::now();
     if !stored.is_empty() {
@@ -190,12 +197,7 @@ pub(crate) fn drive<F: ScanFlow>(mut flow: F, job: Job<'_>, world: Option<SimWor
         s
     });
 
-    // Ground truth on simulated rigs.
-    let truth_occupancy = world.as_ref().map(|w| {
-        events(ScanEvent::Stage("ground truth"));
-        let scene = w.scene();
-        Occupancy::from_fn(grid, |p| scene.contains(&p))
-    });
+    let truth_occupancy = truth_job.map(|job| job.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)));
     let colour_at = |p: &Vector3<f64>| world.as_ref().map_or([0, 0, 0], |w| w.scene().colour_at(p));
     let truth = truth_occupancy.as_ref().map(|occupancy| Truth { occupancy, colour_at: &colour_at });
 

@@ -275,27 +275,31 @@ impl OutputDir {
         if let Some(cloud) = &cloud {
             writes.push(("cloud.ply", Box::new(|| cloud.write_ply(&p("cloud.ply")))));
         }
-        // The mesh's topology (for the report) is counted meanwhile: it reads what the writes read.
-        let (written, mesh_topology) = rayon::join(
+        // Meanwhile the mesh's topology (for the report) is counted and, on a simulated rig, the
+        // result is compared with the scene: both only read what the writes read, and the writes
+        // spend much of their time waiting for the disk (fsync).
+        let grid = *solid.grid();
+        let (written, (mesh_topology, ground_truth)) = rayon::join(
             || -> Vec<Result<(), export::ExportError>> { writes.par_iter().map(|(_, write)| write()).collect() },
-            || mesh.topology(),
+            || {
+                let ground_truth = truth.as_ref().map(|t| {
+                    // The surface-measuring methods are judged by their mesh too; a carved hull's mesh
+                    // is as far from the truth as its excess volume, which IoU already says (and is
+                    // slow to measure).
+                    let mesh = method.measures_surface().then_some(&mesh);
+                    let mut gt = ground_truth(t.scene, t.scene_name, t.occupancy, &solid, mesh);
+                    gt.colour_error = colour_error;
+                    gt
+                });
+                (mesh.topology(), ground_truth)
+            },
         );
         written.into_iter().collect::<Result<(), _>>().map_err(ScanError::Export)?;
         let mut files: Vec<String> = writes.iter().map(|(name, _)| (*name).to_owned()).collect();
         timings.export = t.elapsed().as_secs_f64();
 
-        events(ScanEvent::Stage("evaluate"));
         let mean =
             if reprojection.is_empty() { 0.0 } else { reprojection.iter().sum::<f64>() / reprojection.len() as f64 };
-        let grid = *solid.grid();
-        let ground_truth = truth.as_ref().map(|t| {
-            // The surface-measuring methods are judged by their mesh too; a carved hull's mesh is as far
-            // from the truth as its excess volume, which IoU already says (and is slow to measure).
-            let mesh = method.measures_surface().then_some(&mesh);
-            let mut gt = ground_truth(t.scene, t.scene_name, t.occupancy, &solid, mesh);
-            gt.colour_error = colour_error;
-            gt
-        });
         if let Some(gt) = &ground_truth {
             tracing::info!(iou = gt.iou, chamfer_rel = gt.chamfer_rel, "result compared with the simulated scene");
         }

@@ -168,7 +168,8 @@ pub struct Timings {
     pub carve: f64,
     /// Surface extraction.
     pub mesh: f64,
-    /// Writing results (the mesh's topology for the report is counted meanwhile).
+    /// Writing results (meanwhile the mesh's topology for the report is counted and, on a simulated
+    /// rig, the result compared with the scene).
     pub export: f64,
     /// Start to finish.
     pub total: f64,
