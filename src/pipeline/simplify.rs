@@ -623,9 +623,10 @@ impl<'o> Work<'o> {
     }
 
     /// Whether `p` lies within the bound of one of the original vertices gathered in `points`, or of
-    /// an original triangle around one of them: first around the nearest of those gathered onto new
-    /// face `face` (of all of them with `None`), then around the others, nearest first (the order
-    /// changes only how soon a triangle within the bound is met, not the answer).
+    /// an original triangle around one of them: the vertices gathered onto new face `face` first (all
+    /// of them with `None`), then the others; then the triangles around the nearest of them all, then
+    /// around the others, nearest first (the order changes only how soon a triangle within the bound
+    /// is met, not the answer).
     fn near_original(&mut self, p: [f64; 3], face: Option<u32>) -> bool {
         let original = self.original;
         let gap_of = |x: u32| {
@@ -648,8 +649,14 @@ impl<'o> Work<'o> {
                 nearest = (gap, x);
             }
         }
-        if self.by_face[..lo].iter().chain(&self.by_face[hi..]).any(|&x| gap_of(x) <= self.bound2) {
-            return true;
+        for &x in self.by_face[..lo].iter().chain(&self.by_face[hi..]) {
+            let gap = gap_of(x);
+            if gap <= self.bound2 {
+                return true;
+            }
+            if gap < nearest.0 {
+                nearest = (gap, x);
+            }
         }
         let bound2 = self.bound2;
         let near_triangles = |x: u32| {
@@ -662,7 +669,9 @@ impl<'o> Work<'o> {
         if first != NONE && near_triangles(first) {
             return true;
         }
-        // Only here (about one probe in six) are the gaps kept, to order the rest by.
+        // Only here are the gaps kept, to order the rest by: on the shipped depth-fusion mesh, 3,031
+        // of its 2.96 million probes (535,286 when the triangles of the nearest vertex on the probe's
+        // own face were tried first, instead of the nearest of all).
         self.by_gap.clear();
         self.by_gap.extend(self.points.iter().map(|&(x, _)| (gap_of(x), x)));
         self.by_gap.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
