@@ -26,7 +26,8 @@ pub fn is_atomic_temp(name: &str) -> bool {
 
 /// Write `bytes` to `path` atomically (temporary file in the same directory, fsync, rename).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), AtomicWriteError> {
-    write_atomic_with(path, |w| w.write_all(bytes))
+    // The bytes are whole already: no buffer (a write of them goes straight to the file).
+    write_atomic_buffered(path, 0, |w| w.write_all(bytes))
 }
 
 /// Write `path` atomically from `produce`, which streams the file's bytes into a buffered writer
@@ -37,6 +38,15 @@ pub fn write_atomic_with(
     path: &Path,
     produce: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
 ) -> Result<(), AtomicWriteError> {
+    write_atomic_buffered(path, WRITE_BUFFER, produce)
+}
+
+/// [`write_atomic_with`] through a buffer of `capacity` bytes.
+fn write_atomic_buffered(
+    path: &Path,
+    capacity: usize,
+    produce: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
+) -> Result<(), AtomicWriteError> {
     let io = |source| AtomicWriteError { path: path.to_path_buf(), source };
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
@@ -45,7 +55,7 @@ pub fn write_atomic_with(
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
     let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
     let result = (|| {
-        let mut w = BufWriter::with_capacity(WRITE_BUFFER, File::create(&tmp)?);
+        let mut w = BufWriter::with_capacity(capacity, File::create(&tmp)?);
         produce(&mut w)?;
         let f = w.into_inner().map_err(|e| e.into_error())?;
         f.sync_all()?;

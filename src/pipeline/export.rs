@@ -210,7 +210,16 @@ pub fn encode_ply_voxels<W: Write>(
     occupancy: &Occupancy,
     colors: Option<&Vec<[u8; 3]>>,
 ) -> std::io::Result<()> {
-    let count = occupancy.count();
+    encode_voxels_counted(w, occupancy, occupancy.count(), colors)
+}
+
+/// [`encode_ply_voxels`] with the occupied voxels already counted (`count`).
+fn encode_voxels_counted<W: Write>(
+    w: &mut W,
+    occupancy: &Occupancy,
+    count: u64,
+    colors: Option<&Vec<[u8; 3]>>,
+) -> std::io::Result<()> {
     let color = colors.filter(|c| c.len() as u64 == count);
     write_points_header(w, count, color.is_some())?;
     let g = occupancy.grid();
@@ -233,7 +242,7 @@ pub fn write_ply_voxels(path: &Path, occupancy: &Occupancy, colors: Option<&Vec<
     if let Some(c) = colors.filter(|c| c.len() as u64 != count) {
         return Err(ExportError::ColorCount { path: path.to_path_buf(), colors: c.len(), items: count as usize });
     }
-    Ok(write_atomic_with(path, |w| encode_ply_voxels(w, occupancy, colors))?)
+    Ok(write_atomic_with(path, |w| encode_voxels_counted(w, occupancy, count, colors))?)
 }
 
 #[cfg(test)]

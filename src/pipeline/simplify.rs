@@ -745,21 +745,23 @@ fn simplify_kept<R: Send>(
         // Each region's result goes into the whole mesh's state as soon as it is done, so only the
         // regions being worked on hold a state of their own. Regions own disjoint vertices and
         // triangles, so the order they finish in does not change the result.
-        let shared = std::sync::Mutex::new((state, stats));
-        (0..regions).into_par_iter().for_each(|r| {
-            let (sub, sub_state, sub_locked) = split.region(&original, &shared, r, keep);
-            let mut work = Work::new(&sub, sub_state, sub_locked, bound2);
-            let mut sub_stats = SimplifyStats::default();
-            work.run(&mut queue_edges(&work, params.max_error_m, |_, _| true), &mut sub_stats);
-            let sub_state = work.into_state();
-            drop(sub);
-            let mut guard = shared.lock().unwrap_or_else(|e| e.into_inner());
-            let (state, stats) = &mut *guard;
-            split.absorb(r, sub_state, state);
-            stats.collapses += sub_stats.collapses;
-            stats.refused_by_distance += sub_stats.refused_by_distance;
-        });
-        (state, stats) = shared.into_inner().unwrap_or_else(|e| e.into_inner());
+        let shared = std::sync::Mutex::new(state);
+        let done = (0..regions)
+            .into_par_iter()
+            .map(|r| {
+                let (sub, sub_state, sub_locked) = split.region(&original, &shared, r, keep);
+                let mut work = Work::new(&sub, sub_state, sub_locked, bound2);
+                let mut sub_stats = SimplifyStats::default();
+                work.run(&mut queue_edges(&work, params.max_error_m, |_, _| true), &mut sub_stats);
+                let sub_state = work.into_state();
+                drop(sub);
+                split.absorb(r, sub_state, &mut shared.lock().unwrap_or_else(|e| e.into_inner()));
+                (sub_stats.collapses, sub_stats.refused_by_distance)
+            })
+            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+        stats.collapses += done.0;
+        stats.refused_by_distance += done.1;
+        state = shared.into_inner().unwrap_or_else(|e| e.into_inner());
         seam = split.seam;
     }
     // The whole mesh, nothing locked: everything when it was not split, else the edges at the cuts.
@@ -850,12 +852,12 @@ impl Split {
 
     /// Region `r` as a mesh of its own (its triangles, renumbered), its state and locked vertices:
     /// those on the seam and those `keep` marks (indexed like the whole mesh).
-    /// The quadrics are read from the whole mesh's state (`shared`, with the stats), locked only
-    /// while they are copied.
+    /// The quadrics are read from the whole mesh's state (`shared`), locked only while they are
+    /// copied.
     fn region(
         &self,
         original: &Original,
-        shared: &std::sync::Mutex<(State, SimplifyStats)>,
+        shared: &std::sync::Mutex<State>,
         r: usize,
         keep: &[bool],
     ) -> (Original, State, Vec<bool>) {
@@ -865,7 +867,7 @@ impl Split {
         let sub = Original::new(vertices.iter().map(|&v| original.pos[v as usize]).collect(), tris);
         let quadric = {
             let guard = shared.lock().unwrap_or_else(|e| e.into_inner());
-            vertices.iter().map(|&v| guard.0.quadric[v as usize]).collect()
+            vertices.iter().map(|&v| guard.quadric[v as usize]).collect()
         };
         let sub_state = State::start(&sub, quadric);
         let locked = vertices.iter().map(|&v| self.seam[v as usize] || keep[v as usize]).collect();
