@@ -579,12 +579,19 @@ impl KnnIndex {
     }
 
     /// As [`KnnIndex::k_nearest`], but only points within `max_m` metres of `q`.
+    ///
+    /// The cells are searched in growing shells around `q`'s cell. The candidates of a shell are
+    /// appended unsorted and cut down to the `k` best (by squared distance, then index: a total
+    /// order, so the answer does not depend on the cells' order) only between shells and when the
+    /// buffer grows long, instead of being insertion-sorted one by one.
     pub fn k_nearest_within(&self, q: &[f32; 3], k: usize, max_m: f32, out: &mut Vec<(f32, u32)>) {
         out.clear();
         let max2 = max_m * max_m;
         if k == 0 || self.order.is_empty() || !q.iter().all(|x| x.is_finite()) {
             return;
         }
+        // The k-th best candidate so far (only a candidate better than it can enter), once known.
+        let mut worst: Option<(f32, u32)> = None;
         // The query's cell, relative to the array (may lie outside it).
         let c = [0, 1, 2].map(|a| i64::from(cell_coord(q[a], self.cell_m)) - i64::from(self.cell_lo[a]));
         let d = self.dims.map(|x| x as i64);
@@ -600,15 +607,20 @@ impl KnnIndex {
         let offset = (0..3).map(|a| (-c[a]).max(c[a] - (d[a] - 1)).max(0)).max().unwrap_or(0);
         if offset.saturating_mul(offset).saturating_mul(24) > self.order.len() as i64 {
             // Far from every point: scanning all points is cheaper than the empty shells.
-            self.offer_range(q, 0, self.order.len(), k, out);
-            out.retain(|e| e.0 <= max2);
+            self.offer_range(q, 0, self.order.len(), k, max2, &mut worst, out);
+            keep_best(out, k, &mut worst);
+            out.sort_unstable_by_key(rank);
             return;
         }
         let mut r = offset;
         loop {
             if r > 0 {
                 let floor = (r - 1) as f32 * self.cell_m + own;
-                if floor > max_m || (out.len() >= k && out[k - 1].0 <= floor * floor) {
+                if floor > max_m {
+                    break;
+                }
+                keep_best(out, k, &mut worst);
+                if out.len() >= k && worst.is_some_and(|w| w.0 <= floor * floor) {
                     break;
                 }
             }
@@ -623,14 +635,14 @@ impl KnnIndex {
                     if r == 0 || (z - c[2]).abs() == r || (y - c[1]).abs() == r {
                         if x0 <= x1 {
                             let (s, e) = (self.starts[(row + x0) as usize], self.starts[(row + x1 + 1) as usize]);
-                            self.offer_range(q, s as usize, e as usize, k, out);
+                            self.offer_range(q, s as usize, e as usize, k, max2, &mut worst, out);
                         }
                     } else {
                         for x in [c[0] - r, c[0] + r] {
                             if (0..d[0]).contains(&x) {
                                 let cell = (row + x) as usize;
                                 let (s, e) = (self.starts[cell], self.starts[cell + 1]);
-                                self.offer_range(q, s as usize, e as usize, k, out);
+                                self.offer_range(q, s as usize, e as usize, k, max2, &mut worst, out);
                             }
                         }
                     }
@@ -638,21 +650,64 @@ impl KnnIndex {
             }
             r += 1;
         }
-        out.retain(|e| e.0 <= max2);
+        keep_best(out, k, &mut worst);
+        out.sort_unstable_by_key(rank);
     }
 
-    /// Consider the points `sorted[s..e]` for the `k` nearest to `q` in `out` (sorted by squared
-    /// distance, then index).
+    /// Append to `out` the points `sorted[s..e]` within `sqrt(max2)` metres of `q` that beat
+    /// `worst`; the buffer is cut back to the `k` best ([`keep_best`]) whenever it reaches
+    /// [`CANDIDATES_PER_K`] times `k`.
     #[inline]
-    fn offer_range(&self, q: &[f32; 3], s: usize, e: usize, k: usize, out: &mut Vec<(f32, u32)>) {
+    #[allow(clippy::too_many_arguments)]
+    fn offer_range(
+        &self,
+        q: &[f32; 3],
+        s: usize,
+        e: usize,
+        k: usize,
+        max2: f32,
+        worst: &mut Option<(f32, u32)>,
+        out: &mut Vec<(f32, u32)>,
+    ) {
+        let mut limit = worst.map_or(max2, |w| w.0.min(max2));
         for (p, &i) in self.sorted[s..e].iter().zip(&self.order[s..e]) {
             let d2 = (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2);
-            if out.len() < k || (d2, i) < out[out.len() - 1] {
-                let at = out.partition_point(|e| (e.0, e.1) < (d2, i));
-                out.insert(at, (d2, i));
-                out.truncate(k);
+            // `limit` admits ties with the worst; the index decides those.
+            if d2 > limit || worst.is_some_and(|w| rank(&(d2, i)) >= rank(&w)) {
+                continue;
+            }
+            out.push((d2, i));
+            if out.len() >= (CANDIDATES_PER_K * k).max(MIN_CANDIDATES) {
+                keep_best(out, k, worst);
+                limit = worst.map_or(max2, |w| w.0.min(max2));
             }
         }
+    }
+}
+
+/// A [`KnnIndex`] query's candidate buffer is cut back to its `k` best when it holds this many
+/// times `k` (and at least [`MIN_CANDIDATES`]).
+const CANDIDATES_PER_K: usize = 8;
+/// See [`CANDIDATES_PER_K`].
+const MIN_CANDIDATES: usize = 32;
+
+/// The order of `(squared distance, index)` candidates as one integer: nearer first, then lower
+/// index. A squared distance is never negative, and the bits of a non-negative `f32` order as it does.
+#[inline]
+fn rank(c: &(f32, u32)) -> u64 {
+    u64::from(c.0.to_bits()) << 32 | u64::from(c.1)
+}
+
+/// Keep the `k` best of the candidates in `out` (unordered) and, when there are `k`, set `worst`
+/// to the `k`-th.
+#[inline]
+fn keep_best(out: &mut Vec<(f32, u32)>, k: usize, worst: &mut Option<(f32, u32)>) {
+    if out.len() > k {
+        out.select_nth_unstable_by_key(k - 1, rank);
+        out.truncate(k);
+        *worst = Some(out[k - 1]);
+    } else if out.len() == k && worst.is_none() {
+        *worst = out.iter().copied().max_by_key(rank);
     }
 }
 
@@ -1417,6 +1472,46 @@ mod tests {
         }
         KnnIndex::with_cell(Vec::new(), 0.1).k_nearest(&[0.0; 3], 3, &mut buf);
         assert!(buf.is_empty());
+    }
+
+    /// Many equal distances and many candidates per cell (a lattice in large cells, so the
+    /// candidate buffer is cut back inside a cell): the answer is the brute force's, indices and
+    /// order too, with and without a radius.
+    #[test]
+    fn knn_keeps_the_k_best_by_distance_then_index_through_crowded_cells() {
+        let mut pts = Vec::new();
+        for z in 0..12 {
+            for y in 0..12 {
+                for x in 0..12 {
+                    pts.push([x as f32 * 0.01, y as f32 * 0.01, z as f32 * 0.01]);
+                }
+            }
+        }
+        // Duplicates: the same distance from every query, told apart by index alone.
+        pts.extend_from_within(..200);
+        let brute = |q: &[f32; 3], k: usize, max_m: f32| -> Vec<(f32, u32)> {
+            let mut d: Vec<(f32, u32)> = pts
+                .iter()
+                .enumerate()
+                .map(|(i, p)| ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2), i as u32))
+                .filter(|e| e.0 <= max_m * max_m)
+                .collect();
+            d.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            d.truncate(k);
+            d
+        };
+        let mut buf = Vec::new();
+        for cell in [0.005, 0.035, 0.2] {
+            let index = KnnIndex::with_cell(pts.clone(), cell);
+            for q in [[0.05, 0.05, 0.05], [0.055, 0.05, 0.0], [0.0, 0.0, 0.0], [0.3, -0.1, 0.05]] {
+                for k in [1, 6, 17, 64] {
+                    for max_m in [f32::INFINITY, 0.021] {
+                        index.k_nearest_within(&q, k, max_m, &mut buf);
+                        assert_eq!(buf, brute(&q, k, max_m), "cell {cell} q {q:?} k {k} max {max_m}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]
