@@ -946,14 +946,22 @@ impl SightLineCounts {
 
 /// A min-priority queue of `(squared distance m², voxel index)` entries, popped by distance then
 /// index, as a binary heap of the pairs would pop them. Entries fall into buckets by distance (a
-/// monotone map, so every entry of a bucket comes before those of the next), each bucket a small
-/// binary heap of the pair packed into one `u64`; far cheaper than one heap over them all.
+/// monotone map, so every entry of a bucket comes before those of the next), the pair packed into
+/// one `u64`. A bucket's entries are only appended until it comes up; it is then sorted once and
+/// drained in order. An entry pushed into the bucket being drained, or into an earlier one (a
+/// voxel reached again, nearer), goes into a small binary heap that is drained beside it.
 struct BucketQueue {
-    buckets: Vec<BinaryHeap<Reverse<u64>>>,
+    /// The entries of the buckets after `current`, unordered.
+    buckets: Vec<Vec<u64>>,
+    /// Bucket `current`'s entries as it came up, ascending; `sorted[head..]` are still queued.
+    sorted: Vec<u64>,
+    head: usize,
+    /// Entries pushed into bucket `current` or an earlier one after it came up.
+    late: BinaryHeap<Reverse<u64>>,
     /// Buckets per m² of squared distance.
     scale: f32,
-    /// No bucket below this one holds an entry.
-    current: usize,
+    /// The bucket being drained (`None` before the first pop).
+    current: Option<usize>,
 }
 
 /// Buckets of a [`BucketQueue`].
@@ -963,25 +971,56 @@ impl BucketQueue {
     /// Buckets spread over squared distances `0..=max_d2` (m²); larger ones share the last bucket.
     fn new(max_d2: f32) -> BucketQueue {
         let scale = if max_d2.is_finite() && max_d2 > 0.0 { QUEUE_BUCKETS as f32 / max_d2 } else { 0.0 };
-        BucketQueue { buckets: vec![BinaryHeap::new(); QUEUE_BUCKETS], scale, current: QUEUE_BUCKETS }
+        BucketQueue {
+            buckets: vec![Vec::new(); QUEUE_BUCKETS],
+            sorted: Vec::new(),
+            head: 0,
+            late: BinaryHeap::new(),
+            scale,
+            current: None,
+        }
     }
 
     /// Add an entry; `d2` must be non-negative (the bits of non-negative floats order as they do).
     fn push(&mut self, d2: f32, idx: u32) {
         let b = ((d2 * self.scale) as usize).min(QUEUE_BUCKETS - 1);
-        self.buckets[b].push(Reverse((u64::from(d2.to_bits()) << 32) | u64::from(idx)));
-        self.current = self.current.min(b);
+        let key = (u64::from(d2.to_bits()) << 32) | u64::from(idx);
+        match self.current {
+            Some(c) if b <= c => self.late.push(Reverse(key)),
+            _ => self.buckets[b].push(key),
+        }
     }
 
     /// Remove the least entry.
     fn pop(&mut self) -> Option<(f32, u32)> {
-        while self.current < QUEUE_BUCKETS {
-            if let Some(Reverse(key)) = self.buckets[self.current].pop() {
-                return Some((f32::from_bits((key >> 32) as u32), key as u32));
+        let unpack = |key: u64| (f32::from_bits((key >> 32) as u32), key as u32);
+        loop {
+            // Every entry left in the buckets comes after both of these.
+            let next = self.sorted.get(self.head).copied();
+            match (next, self.late.peek()) {
+                (Some(a), Some(&Reverse(b))) if b < a => {
+                    self.late.pop();
+                    return Some(unpack(b));
+                }
+                (Some(a), _) => {
+                    self.head += 1;
+                    return Some(unpack(a));
+                }
+                (None, Some(&Reverse(b))) => {
+                    self.late.pop();
+                    return Some(unpack(b));
+                }
+                (None, None) => {}
             }
-            self.current += 1;
+            // Bring up the next bucket holding entries.
+            let from = self.current.map_or(0, |c| c + 1);
+            let b = (from..QUEUE_BUCKETS).find(|&b| !self.buckets[b].is_empty())?;
+            std::mem::swap(&mut self.sorted, &mut self.buckets[b]);
+            self.buckets[b].clear();
+            self.sorted.sort_unstable();
+            self.head = 0;
+            self.current = Some(b);
         }
-        None
     }
 }
 
@@ -1556,14 +1595,19 @@ mod tests {
         while let Some(Reverse((bits, i))) = heap.pop() {
             assert_eq!(queue.pop(), Some((f32::from_bits(bits), i)));
             popped += 1;
-            // Later entries below the last one popped, as the distance transform makes them.
+            // Later entries below the last one popped, as the distance transform makes them, and
+            // just above it (into the bucket being drained).
             if popped % 7 == 0 && popped < 3000 {
                 let d2 = f32::from_bits(bits) * rng.next();
                 push(d2, 10_000 + popped, &mut queue, &mut heap);
             }
+            if popped % 5 == 0 && popped < 3000 {
+                let d2 = f32::from_bits(bits) * (1.0 + 1e-4 * rng.next());
+                push(d2, 20_000 + popped, &mut queue, &mut heap);
+            }
         }
         assert_eq!(queue.pop(), None);
-        assert!(popped > 2200, "{popped}");
+        assert!(popped > 2800, "{popped}");
     }
 
     /// The definition [`SightLineCounts`] must match: every voxel each line crosses, marked directly.
