@@ -1157,7 +1157,6 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
             expected: "at most 2^32 - 1",
         });
     }
-    let passable = |idx: usize| free.is_none_or(|f| f[idx]);
     check_k(params.k)?;
     let normals = cloud.normals().ok_or(CloudError::NoNormals)?;
     if !(params.band_voxels.is_finite() && params.band_voxels >= 1.0) {
@@ -1326,43 +1325,48 @@ pub fn solid_and_mesh_from_cloud_with_free_space(
     drop(wave);
     // 4. Beyond that reach: what the seeded outer faces reach through unlabelled voxels is outside
     //    (the air around the object and in its open concavities), the rest is enclosed: inside.
-    let mut queue = VecDeque::with_capacity(grid.len() / 4);
-    for k in 0..dims[2] {
-        for j in 0..dims[1] {
-            for i in 0..dims[0] {
-                let idx = grid.index(i, j, k);
-                if label[idx] == 0 && passable(idx) && on_seeded_face(grid, params, i, j, k) {
-                    label[idx] = 1;
-                    queue.push_back(idx);
+    //    With free space given, the outer air would spread only through free voxels, and every free
+    //    voxel off the band is made outside below whatever its label: the flood would change
+    //    nothing, so it runs only without.
+    if free.is_none() {
+        let mut queue = VecDeque::with_capacity(grid.len() / 4);
+        for k in 0..dims[2] {
+            for j in 0..dims[1] {
+                for i in 0..dims[0] {
+                    let idx = grid.index(i, j, k);
+                    if label[idx] == 0 && on_seeded_face(grid, params, i, j, k) {
+                        label[idx] = 1;
+                        queue.push_back(idx);
+                    }
                 }
             }
         }
-    }
-    while let Some(idx) = queue.pop_front() {
-        let [i, j, k] = unravel(idx);
-        let mut visit = |n: usize| {
-            if label[n] == 0 && passable(n) {
-                label[n] = 1;
-                queue.push_back(n);
+        while let Some(idx) = queue.pop_front() {
+            let [i, j, k] = unravel(idx);
+            let mut visit = |n: usize| {
+                if label[n] == 0 {
+                    label[n] = 1;
+                    queue.push_back(n);
+                }
+            };
+            if i > 0 {
+                visit(idx - 1);
             }
-        };
-        if i > 0 {
-            visit(idx - 1);
-        }
-        if i + 1 < dims[0] {
-            visit(idx + 1);
-        }
-        if j > 0 {
-            visit(idx - dims[0]);
-        }
-        if j + 1 < dims[1] {
-            visit(idx + dims[0]);
-        }
-        if k > 0 {
-            visit(idx - dims[0] * dims[1]);
-        }
-        if k + 1 < dims[2] {
-            visit(idx + dims[0] * dims[1]);
+            if i + 1 < dims[0] {
+                visit(idx + 1);
+            }
+            if j > 0 {
+                visit(idx - dims[0]);
+            }
+            if j + 1 < dims[1] {
+                visit(idx + dims[0]);
+            }
+            if k > 0 {
+                visit(idx - dims[0] * dims[1]);
+            }
+            if k + 1 < dims[2] {
+                visit(idx + dims[0] * dims[1]);
+            }
         }
     }
     for l in label.iter_mut().filter(|l| **l == 0) {
