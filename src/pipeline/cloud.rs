@@ -620,7 +620,8 @@ impl KnnIndex {
                     break;
                 }
                 keep_best(out, k, &mut worst);
-                if out.len() >= k && worst.is_some_and(|w| w.0 <= floor * floor) {
+                // `worst` is known once `k` candidates are (and `out` holds exactly those).
+                if worst.is_some_and(|w| w.0 <= floor * floor) {
                     break;
                 }
             }
@@ -656,7 +657,7 @@ impl KnnIndex {
 
     /// Append to `out` the points `sorted[s..e]` within `sqrt(max2)` metres of `q` that beat
     /// `worst`; the buffer is cut back to the `k` best ([`keep_best`]) whenever it reaches
-    /// [`CANDIDATES_PER_K`] times `k`.
+    /// [`CANDIDATES_PER_K`] times `k` (at least [`MIN_CANDIDATES`]).
     #[inline]
     #[allow(clippy::too_many_arguments)]
     fn offer_range(

@@ -201,20 +201,11 @@ pub fn write_ply_points(path: &Path, points: &[[f32; 3]], colors: Option<&Vec<[u
     Ok(write_atomic_with(path, |w| encode_ply_points(w, points, colors))?)
 }
 
-/// Encode the centres of the occupied voxels (metres, the grid's frame) as a binary PLY point
-/// cloud into `w`, in [`Occupancy::for_each_occupied`]'s order, straight from the bricks: no list
-/// of the centres is built, so the memory it takes does not grow with the solid's volume. `colors`,
-/// if given, holds one colour per occupied voxel in that order.
-pub fn encode_ply_voxels<W: Write>(
-    w: &mut W,
-    occupancy: &Occupancy,
-    colors: Option<&Vec<[u8; 3]>>,
-) -> std::io::Result<()> {
-    encode_voxels_counted(w, occupancy, occupancy.count(), colors)
-}
-
-/// [`encode_ply_voxels`] with the occupied voxels already counted (`count`).
-fn encode_voxels_counted<W: Write>(
+/// Encode the centres of the `count` occupied voxels (metres, the grid's frame) as a binary PLY
+/// point cloud into `w`, in [`Occupancy::for_each_occupied`]'s order, straight from the bricks: no
+/// list of the centres is built, so the memory it takes does not grow with the solid's volume.
+/// `colors`, if given, holds one colour per occupied voxel in that order.
+fn encode_ply_voxels<W: Write>(
     w: &mut W,
     occupancy: &Occupancy,
     count: u64,
@@ -236,13 +227,13 @@ fn encode_voxels_counted<W: Write>(
 }
 
 /// Write the occupied voxels' centres as a binary PLY point cloud, atomically, streamed to the
-/// file (see [`encode_ply_voxels`]).
+/// file (see `encode_ply_voxels`).
 pub fn write_ply_voxels(path: &Path, occupancy: &Occupancy, colors: Option<&Vec<[u8; 3]>>) -> Result<(), ExportError> {
     let count = occupancy.count();
     if let Some(c) = colors.filter(|c| c.len() as u64 != count) {
         return Err(ExportError::ColorCount { path: path.to_path_buf(), colors: c.len(), items: count as usize });
     }
-    Ok(write_atomic_with(path, |w| encode_voxels_counted(w, occupancy, count, colors))?)
+    Ok(write_atomic_with(path, |w| encode_ply_voxels(w, occupancy, count, colors))?)
 }
 
 #[cfg(test)]
