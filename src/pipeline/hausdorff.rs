@@ -197,9 +197,23 @@ impl<'a> TriangleIndex<'a> {
     /// `q`, and is listed in the cell holding that point, so searching the cells of that box once
     /// more finds the nearest.
     pub fn distance(&self, q: [f64; 3]) -> f64 {
+        self.nearest(q, NO_HINT).0
+    }
+
+    /// [`Self::distance`] and the nearest triangle (an index into `tris`; [`NO_HINT`] when there is
+    /// none), starting from triangle `hint` when it is within a cell edge of `q`: triangles whose
+    /// sphere is beyond it are skipped without their exact distance. Any hint gives the same
+    /// distance, the smallest of the triangles' (the search only ever skips a triangle that cannot
+    /// be nearer than one already measured).
+    fn nearest(&self, q: [f64; 3], hint: u32) -> (f64, u32) {
         let c = self.cell_of(q);
-        // The nearest distance found so far, metres.
-        let mut best = f64::INFINITY;
+        let mut best = Best { d2: f64::INFINITY, d: f64::INFINITY, tri: NO_HINT };
+        if let Some(p) = self.tris.get(hint as usize) {
+            let d2 = point_triangle_distance2(q, &p.corners());
+            if d2 <= self.cell * self.cell {
+                best.offer(d2, hint);
+            }
+        }
         let reach = (0..3).map(|k| (c[k]).abs().max((self.dims[k] - 1 - c[k]).abs())).max().unwrap_or(0);
         let mut searched = 0;
         for r in 0..=reach {
@@ -221,15 +235,15 @@ impl<'a> TriangleIndex<'a> {
                     }
                 }
             }
-            if best.is_finite() {
+            if best.d.is_finite() {
                 break;
             }
         }
-        if !best.is_finite() {
-            return f64::INFINITY;
+        if !best.d.is_finite() {
+            return (f64::INFINITY, NO_HINT);
         }
         // The box around q of half-width the distance found, less the block of shells searched.
-        let d = best;
+        let d = best.d;
         let lo = [0, 1, 2].map(|k| self.cell_of_axis(q[k] - d, k).max(0));
         let hi = [0, 1, 2].map(|k| self.cell_of_axis(q[k] + d, k).min(self.dims[k] - 1));
         for z in lo[2]..=hi[2] {
@@ -243,12 +257,13 @@ impl<'a> TriangleIndex<'a> {
                 }
             }
         }
-        best
+        (best.d, best.tri)
     }
 
     /// [`Self::distance`] of each point (metres), in the points' order. The points are measured in
     /// the order of the cells they fall in, so that neighbouring queries read the same triangles
-    /// (the area samples come in random order, and a large mesh's index does not fit in a cache).
+    /// (the area samples come in random order, and a large mesh's index does not fit in a cache),
+    /// each starting from the nearest triangle of the point before it ([`Self::nearest`]'s hint).
     pub fn distances(&self, points: &[[f32; 3]]) -> Vec<f64> {
         let mut order: Vec<u64> = points
             .par_iter()
@@ -259,8 +274,17 @@ impl<'a> TriangleIndex<'a> {
             })
             .collect();
         order.par_sort_unstable();
-        let measured: Vec<f64> =
-            order.par_iter().map(|&key| self.distance(points[(key & 0xffff_ffff) as usize].map(f64::from))).collect();
+        let measured: Vec<f64> = order
+            .par_chunks(HINTED_RUN)
+            .flat_map_iter(|run| {
+                let mut hint = NO_HINT;
+                run.iter().map(move |&key| {
+                    let (d, t) = self.nearest(points[(key & 0xffff_ffff) as usize].map(f64::from), hint);
+                    hint = t;
+                    d
+                })
+            })
+            .collect();
         let mut d = vec![0.0; points.len()];
         for (&key, m) in order.iter().zip(measured) {
             d[(key & 0xffff_ffff) as usize] = m;
@@ -270,17 +294,39 @@ impl<'a> TriangleIndex<'a> {
 
     /// Fold the triangles of cell `i` into `best`, skipping those whose bounding sphere is farther
     /// than the nearest found.
-    fn search_cell(&self, q: [f64; 3], i: usize, best: &mut f64) {
+    fn search_cell(&self, q: [f64; 3], i: usize, best: &mut Best) {
         for &t in &self.items[self.start[i] as usize..self.start[i + 1] as usize] {
             let p = &self.tris[t as usize];
-            let reach = f64::from(p.radius) + *best;
+            let reach = f64::from(p.radius) + best.d;
             if dist2(q, p.centre.map(f64::from)) >= reach * reach {
                 continue;
             }
-            let d2 = point_triangle_distance2(q, &p.corners());
-            if d2 < *best * *best {
-                *best = d2.sqrt();
-            }
+            best.offer(point_triangle_distance2(q, &p.corners()), t);
+        }
+    }
+}
+
+/// No triangle: a search without a hint, or one that found nothing.
+const NO_HINT: u32 = u32::MAX;
+
+/// Queries measured one after the other, each from the previous one's nearest triangle, by
+/// [`TriangleIndex::distances`] (runs are measured in parallel).
+const HINTED_RUN: usize = 512;
+
+/// The nearest triangle found so far: its squared distance (metres²), the distance, and its index.
+struct Best {
+    d2: f64,
+    d: f64,
+    tri: u32,
+}
+
+impl Best {
+    /// Keep triangle `tri` at squared distance `d2` when it is nearer than the one held (the
+    /// smallest squared distance wins, whatever the order of the offers).
+    #[inline]
+    fn offer(&mut self, d2: f64, tri: u32) {
+        if d2 < self.d2 {
+            (self.d2, self.d, self.tri) = (d2, d2.sqrt(), tri);
         }
     }
 }
@@ -470,7 +516,8 @@ mod tests {
             queries.push(q.map(|x| x as f32));
         }
         assert!(near > 150, "{near} points near the surface");
-        // Measured in cell order, returned in the queries' order.
+        // Measured in cell order, each from the nearest triangle of the query before it (a hint
+        // that is often not the answer: the queries are scattered), returned in the queries' order.
         let one_by_one: Vec<f64> = queries.iter().map(|q| index.distance(q.map(f64::from))).collect();
         assert_eq!(index.distances(&queries), one_by_one);
     }
