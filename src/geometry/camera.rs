@@ -202,7 +202,7 @@ impl CameraModel {
     /// The pixel a reference-frame point falls in, if it is in front of the camera and inside the image.
     pub fn pixel_of(&self, p: &Vector3<f64>) -> Option<(u32, u32)> {
         let q = self.project(p)?;
-        let (u, v) = (q.x.floor(), q.y.floor());
+        let (u, v) = (super::round::floor_f64(q.x), super::round::floor_f64(q.y));
         (u >= 0.0 && v >= 0.0 && u < self.width as f64 && v < self.height as f64).then_some((u as u32, v as u32))
     }
 

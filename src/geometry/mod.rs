@@ -12,6 +12,7 @@
 
 mod camera;
 mod grid;
+pub(crate) mod round;
 
 pub use camera::{CameraModel, Intrinsics, Pose};
 pub use grid::VoxelGrid;

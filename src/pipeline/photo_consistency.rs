@@ -36,6 +36,7 @@ use image::RgbImage;
 use rayon::prelude::*;
 
 use super::silhouette::Mask;
+use crate::geometry::round::{ceil_f32, floor_f32};
 use crate::geometry::{CameraModel, VoxelGrid};
 
 /// A calibrated colour view: a camera (in the grid's frame), its image and optionally its silhouette.
@@ -508,12 +509,12 @@ impl VoxelCamera {
         }
         // Pixels whose centre x + 0.5 lies in [u0, u1].
         let range = |lo: f32, hi: f32, c: f32, n: usize| {
-            let a = (lo - 0.5).ceil().max(0.0);
-            let b = ((hi - 0.5).floor() + 1.0).min(n as f32);
+            let a = ceil_f32(lo - 0.5).max(0.0);
+            let b = (floor_f32(hi - 0.5) + 1.0).min(n as f32);
             if a < b {
                 (a as usize, b as usize)
             } else {
-                let p = c.floor().clamp(0.0, n as f32 - 1.0) as usize;
+                let p = floor_f32(c).clamp(0.0, n as f32 - 1.0) as usize;
                 (p, p + 1)
             }
         };
@@ -533,12 +534,12 @@ impl VoxelCamera {
         if !(u0.is_finite() && u1.is_finite() && v0.is_finite() && v1.is_finite()) {
             return (None, None);
         }
-        let ua = (u0 - 0.5).ceil().max(0.0);
-        let ub = (u1 - 0.5).floor().min(w as f32 - 1.0);
-        let va = (v0 - 0.5).ceil().max(0.0);
-        let vb = (v1 - 0.5).floor().min(h as f32 - 1.0);
+        let ua = ceil_f32(u0 - 0.5).max(0.0);
+        let ub = floor_f32(u1 - 0.5).min(w as f32 - 1.0);
+        let va = ceil_f32(v0 - 0.5).max(0.0);
+        let vb = floor_f32(v1 - 0.5).min(h as f32 - 1.0);
         let rect = (ua <= ub && va <= vb).then_some([ua as usize, ub as usize, va as usize, vb as usize]);
-        (rect, self.pixel(uc.floor(), vc.floor()))
+        (rect, self.pixel(floor_f32(uc), floor_f32(vc)))
     }
 
     /// Whether voxel `v` covers pixel `(x, y)` (as [`Self::cover`] counts it).

@@ -37,6 +37,7 @@ use super::occupancy::{
     block_coords, brick_origin, sub_cube_bits, valid_bits, Block, Occupancy, BLOCK, BLOCK_BRICKS, BRICK,
 };
 use super::silhouette::Mask;
+use crate::geometry::round::{ceil_f64, floor_f64};
 use crate::geometry::{CameraModel, VoxelGrid};
 
 /// A calibrated silhouette: a camera (already in the grid's frame, e.g. the object frame for a
@@ -362,18 +363,6 @@ fn build_sat(mask: &Mask, sat: &mut Vec<u32>) {
     }
 }
 
-/// `x.floor()` without a libm call, for finite `x` (saturating far outside the `i64` range, which
-/// keeps the comparisons with the image size right).
-#[inline(always)]
-fn floor(x: f64) -> f64 {
-    let t = x as i64 as f64;
-    if t > x {
-        t - 1.0
-    } else {
-        t
-    }
-}
-
 /// Classify a cell for one view against its summed-area table.
 #[inline]
 fn classify(p: &Projector, sat: &[u32], lo: [usize; 3], hi: [usize; 3]) -> Verdict {
@@ -383,7 +372,7 @@ fn classify(p: &Projector, sat: &[u32], lo: [usize; 3], hi: [usize; 3]) -> Verdi
         CellBound::Rect(r) => r,
     };
     let (w, h) = (p.wf as f64, p.hf as f64);
-    let (u0, u1, v0, v1) = (floor(r[0]), floor(r[1]), floor(r[2]), floor(r[3]));
+    let (u0, u1, v0, v1) = (floor_f64(r[0]), floor_f64(r[1]), floor_f64(r[2]), floor_f64(r[3]));
     let inside = u0 >= 0.0 && v0 >= 0.0 && u1 < w && v1 < h;
     let (cu0, cu1) = (u0.max(0.0), u1.min(w - 1.0));
     let (cv0, cv1) = (v0.max(0.0), v1.min(h - 1.0));
@@ -734,10 +723,10 @@ pub fn reproject(occupancy: &Occupancy, boundary: &[[u32; 3]], camera: &CameraMo
             continue;
         }
         // Pixels whose centre (u + 0.5, v + 0.5) is inside [x0, x1] x [y0, y1].
-        let ua = (x0 - 0.5).ceil().max(0.0);
-        let ub = (x1 - 0.5).floor().min(w as f64 - 1.0);
-        let va = (y0 - 0.5).ceil().max(0.0);
-        let vb = (y1 - 0.5).floor().min(h as f64 - 1.0);
+        let ua = ceil_f64(x0 - 0.5).max(0.0);
+        let ub = floor_f64(x1 - 0.5).min(w as f64 - 1.0);
+        let va = ceil_f64(y0 - 0.5).max(0.0);
+        let vb = floor_f64(y1 - 0.5).min(h as f64 - 1.0);
         if ua <= ub && va <= vb {
             for vv in va as usize..=vb as usize {
                 data[vv * w + ua as usize..=vv * w + ub as usize].fill(1);

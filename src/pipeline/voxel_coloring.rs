@@ -55,6 +55,7 @@ use super::photo_consistency::{
     render_item_buffers, surface_colour, Footprint, FootprintSample, ItemBuffer, PhotoError, PhotoNoise, PhotoParams,
     PhotoView, ViewPixels, ViewSample, VoxelCamera,
 };
+use crate::geometry::round::floor_f32;
 use crate::geometry::VoxelGrid;
 
 mod incremental;
@@ -857,7 +858,7 @@ pub fn color_voxels_every_voxel(
     // Layers of increasing d·x, one voxel thick.
     let mut voxels: Vec<(i32, [u32; 3])> = Vec::new();
     start.for_each_occupied(|i, j, k| {
-        let key = (d[0] * i as f32 + d[1] * j as f32 + d[2] * k as f32).floor() as i32;
+        let key = floor_f32(d[0] * i as f32 + d[1] * j as f32 + d[2] * k as f32) as i32;
         voxels.push((key, [i as u32, j as u32, k as u32]));
     });
     voxels.sort_unstable_by_key(|&(key, v)| (key, v[2], v[1], v[0]));

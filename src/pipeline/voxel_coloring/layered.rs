@@ -20,6 +20,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::{claim_rect, colouring_verdict_in, ordinal_direction, restore_and_colour, Dense, PhotoModel, PhotoStats};
+use crate::geometry::round::floor_f32;
 use crate::pipeline::occupancy::Occupancy;
 use crate::pipeline::photo_consistency::{check_inputs, PhotoError, PhotoParams, PhotoView, ViewPixels, VoxelCamera};
 
@@ -86,7 +87,7 @@ pub(super) fn color_along(
     let d = d.map(|x| x as f32);
     let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
     let mut dense = Dense::from(start);
-    let key = |v: [u32; 3]| (d[0] * v[0] as f32 + d[1] * v[1] as f32 + d[2] * v[2] as f32).floor() as i32;
+    let key = |v: [u32; 3]| floor_f32(d[0] * v[0] as f32 + d[1] * v[1] as f32 + d[2] * v[2] as f32) as i32;
 
     let dims = grid.dims;
     let nb = dims.map(|n| (n as u32).div_ceil(B));
