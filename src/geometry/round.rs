@@ -1,4 +1,4 @@
-//! `floor` and `ceil` without a library call. The x86-64 baseline this crate is built for has no
+//! `floor` (and `ceil` for `f32`) without a library call. The x86-64 baseline this crate is built for has no
 //! rounding instruction (SSE4.1's `roundss`/`roundsd`), so `f32::floor` and friends are calls into
 //! libm; in the per-voxel projection loops (footprints, re-projection) those calls cost more than
 //! the arithmetic around them. These give exactly the library's result for every input (NaN and
@@ -14,7 +14,7 @@ const INTEGRAL_F32: f32 = 8_388_608.0;
 #[inline(always)]
 pub(crate) fn floor_f64(x: f64) -> f64 {
     // NaN, infinities and large magnitudes are their own floor.
-    if !(x.abs() < INTEGRAL_F64) {
+    if x.is_nan() || x.abs() >= INTEGRAL_F64 {
         return x;
     }
     let t = x as i64 as f64;
@@ -25,24 +25,10 @@ pub(crate) fn floor_f64(x: f64) -> f64 {
     }
 }
 
-/// `x.ceil()`.
-#[inline(always)]
-pub(crate) fn ceil_f64(x: f64) -> f64 {
-    if !(x.abs() < INTEGRAL_F64) {
-        return x;
-    }
-    let t = x as i64 as f64;
-    if t < x {
-        t + 1.0
-    } else {
-        t
-    }
-}
-
 /// `x.floor()`.
 #[inline(always)]
 pub(crate) fn floor_f32(x: f32) -> f32 {
-    if !(x.abs() < INTEGRAL_F32) {
+    if x.is_nan() || x.abs() >= INTEGRAL_F32 {
         return x;
     }
     let t = x as i32 as f32;
@@ -56,7 +42,7 @@ pub(crate) fn floor_f32(x: f32) -> f32 {
 /// `x.ceil()`.
 #[inline(always)]
 pub(crate) fn ceil_f32(x: f32) -> f32 {
-    if !(x.abs() < INTEGRAL_F32) {
+    if x.is_nan() || x.abs() >= INTEGRAL_F32 {
         return x;
     }
     let t = x as i32 as f32;
@@ -112,7 +98,6 @@ mod tests {
         }
         for x in xs64 {
             assert!(same64(floor_f64(x), x.floor()), "floor {x:e}: {} vs {}", floor_f64(x), x.floor());
-            assert!(same64(ceil_f64(x), x.ceil()), "ceil {x:e}: {} vs {}", ceil_f64(x), x.ceil());
         }
         let mut xs32: Vec<f32> = vec![
             0.0,

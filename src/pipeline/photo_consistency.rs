@@ -1027,7 +1027,6 @@ mod tests {
     #[test]
     fn cube_rectangles_and_covers_match_projecting_every_corner() {
         use crate::geometry::{Aabb, Intrinsics};
-        use crate::pipeline::occupancy::Occupancy;
         let CameraModel { intrinsics: lens, pose, .. } = lens_camera();
         let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.05; 3], max: [0.05; 3] }, 24);
         for intrinsics in [lens, Intrinsics::new(800.0, 790.0, 321.0, 238.0)] {
@@ -1052,19 +1051,6 @@ mod tests {
                 }
             }
             assert_eq!(checked, 18);
-            // The f32 cover splats like the f64 re-projection of space carving, but for pixels
-            // whose centre lies within rounding of a rectangle's edge.
-            let ball = Occupancy::from_fn(grid, |p| p.norm() < 0.04);
-            let boundary = ball.boundary_voxels();
-            let ours = vc.cover(&boundary);
-            let theirs = crate::pipeline::space_carving::reproject(&ball, &boundary, &camera);
-            let covered = theirs.count();
-            let differ = (0..480u32)
-                .flat_map(|y| (0..640u32).map(move |x| (x, y)))
-                .filter(|&(x, y)| ours[(y * 640 + x) as usize] != theirs.get(x, y))
-                .count();
-            assert!(covered > 10_000, "{covered}");
-            assert!(differ * 1000 <= covered, "{differ} of {covered} pixels differ");
         }
     }
 

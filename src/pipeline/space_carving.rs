@@ -30,14 +30,15 @@
 //! is tried first in the next one. Each view's verdict on a cell is sound on its own, so neither the
 //! order of views nor the hint changes the result.
 
-use nalgebra::{Matrix3x4, Point2, Vector3, Vector4};
+use nalgebra::{Matrix3x4, Vector4};
 use rayon::prelude::*;
 
 use super::occupancy::{
     block_coords, brick_origin, sub_cube_bits, valid_bits, Block, Occupancy, BLOCK, BLOCK_BRICKS, BRICK,
 };
+use super::photo_consistency::VoxelCamera;
 use super::silhouette::Mask;
-use crate::geometry::round::{ceil_f64, floor_f64};
+use crate::geometry::round::floor_f64;
 use crate::geometry::{CameraModel, VoxelGrid};
 
 /// A calibrated silhouette: a camera (already in the grid's frame, e.g. the object frame for a
@@ -692,115 +693,20 @@ fn block_coords_of(o: [usize; 3]) -> [usize; 3] {
 /// projected (its eight corners) and the pixels whose centres lie in the bounding rectangle of the
 /// corner images are set, plus the pixel of the voxel centre. Voxels with any corner behind the camera
 /// are skipped. Interior voxels are skipped: the projection of a solid is covered by the footprints of
-/// the voxels on its boundary. Each corner (a lattice point, shared by up to eight voxels) is
-/// projected once while the voxels come in order of z (as [`reprojection_iou`] passes them); any
-/// order gives the same mask.
+/// the voxels on its boundary. Projected in `f32` through the full lens model, as the photo methods'
+/// item buffers cover pixels (`photo_consistency::VoxelCamera::cover`): a pixel whose centre lies
+/// within rounding of a rectangle's edge may differ from an `f64` projection (the test below bounds
+/// how many). Any order of `boundary` gives the same mask.
 pub fn reproject(occupancy: &Occupancy, boundary: &[[u32; 3]], camera: &CameraModel) -> Mask {
-    let grid = occupancy.grid();
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    let mut data = vec![0u8; w * h];
-    let (o, s) = (grid.origin, grid.voxel_size);
-    let image = |i: u32, j: u32, k: u32| {
-        camera.project(&Vector3::new(o[0] + f64::from(i) * s, o[1] + f64::from(j) * s, o[2] + f64::from(k) * s))
-    };
-    let mut corners = CornerImages::new(grid.dims[0] + 1, grid.dims[1] + 1);
-    for v in boundary {
-        let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
-        let mut ok = true;
-        for n in 0..8u32 {
-            let [i, j, k] = [0, 1, 2].map(|a| v[a] + (n >> a & 1));
-            match corners.get(i, j, k, &image) {
-                Some(q) => {
-                    x0 = x0.min(q.x);
-                    x1 = x1.max(q.x);
-                    y0 = y0.min(q.y);
-                    y1 = y1.max(q.y);
-                }
-                None => ok = false,
-            }
-        }
-        if !(ok && x0.is_finite() && x1.is_finite() && y0.is_finite() && y1.is_finite()) {
-            continue;
-        }
-        // Pixels whose centre (u + 0.5, v + 0.5) is inside [x0, x1] x [y0, y1].
-        let ua = ceil_f64(x0 - 0.5).max(0.0);
-        let ub = floor_f64(x1 - 0.5).min(w as f64 - 1.0);
-        let va = ceil_f64(y0 - 0.5).max(0.0);
-        let vb = floor_f64(y1 - 0.5).min(h as f64 - 1.0);
-        if ua <= ub && va <= vb {
-            for vv in va as usize..=vb as usize {
-                data[vv * w + ua as usize..=vv * w + ub as usize].fill(1);
-            }
-        }
-        let c = grid.centre(v[0] as usize, v[1] as usize, v[2] as usize);
-        if let Some((u, vv)) = camera.pixel_of(&c) {
-            data[vv as usize * w + u as usize] = 1;
-        }
-    }
-    Mask::from_raw(camera.width, camera.height, data).unwrap_or_else(|_| Mask::from_fn(0, 0, |_, _| false))
-}
-
-/// The images of the lattice points (voxel corners) on two planes of constant z, each projected
-/// once and reused by the voxels that share it: `None` for a point behind the camera.
-struct CornerImages {
-    /// Lattice points along x and y.
-    width: usize,
-    planes: [CornerPlane; 2],
-}
-
-struct CornerPlane {
-    /// The plane's z lattice index (`u32::MAX`: none yet).
-    k: u32,
-    /// A point's image is held iff its `seen` equals `epoch` (bumped when the plane is reused).
-    epoch: u32,
-    seen: Vec<u32>,
-    images: Vec<Option<Point2<f64>>>,
-}
-
-impl CornerImages {
-    fn new(nx: usize, ny: usize) -> CornerImages {
-        let plane = || CornerPlane { k: u32::MAX, epoch: 0, seen: vec![0; nx * ny], images: vec![None; nx * ny] };
-        CornerImages { width: nx, planes: [plane(), plane()] }
-    }
-
-    /// The image of lattice point `(i, j, k)`, from `project` the first time it is asked for on its plane.
-    fn get(
-        &mut self,
-        i: u32,
-        j: u32,
-        k: u32,
-        project: &impl Fn(u32, u32, u32) -> Option<Point2<f64>>,
-    ) -> Option<Point2<f64>> {
-        let slot = match self.planes.iter().position(|p| p.k == k) {
-            Some(slot) => slot,
-            None => {
-                // Keep the plane next to this one (the voxels of a z layer use planes k and k + 1).
-                let slot = usize::from(self.planes[0].k.checked_add(1) == Some(k) || self.planes[0].k == k + 1);
-                let p = &mut self.planes[slot];
-                p.k = k;
-                p.epoch = p.epoch.wrapping_add(1);
-                if p.epoch == 0 {
-                    p.seen.fill(0);
-                    p.epoch = 1;
-                }
-                slot
-            }
-        };
-        let p = &mut self.planes[slot];
-        let at = j as usize * self.width + i as usize;
-        if p.seen[at] != p.epoch {
-            p.seen[at] = p.epoch;
-            p.images[at] = project(i, j, k);
-        }
-        p.images[at]
-    }
+    let cover = VoxelCamera::new(camera, occupancy.grid()).cover(boundary);
+    Mask::from_raw(camera.width, camera.height, cover.into_iter().map(u8::from).collect())
+        .unwrap_or_else(|_| Mask::from_fn(0, 0, |_, _| false))
 }
 
 /// Silhouette re-projection IoU per view (footprints splatted, see [`reproject`]); views whose mask
 /// size differs from the camera's give `None`.
 pub fn reprojection_iou(occupancy: &Occupancy, views: &[View<'_>]) -> Vec<Option<f64>> {
-    let mut boundary = occupancy.boundary_voxels();
-    boundary.sort_unstable_by_key(|v| [v[2], v[1], v[0]]);
+    let boundary = occupancy.boundary_voxels();
     views.par_iter().map(|v| reproject(occupancy, &boundary, &v.camera).iou(v.mask)).collect()
 }
 
@@ -808,21 +714,32 @@ pub fn reprojection_iou(occupancy: &Occupancy, views: &[View<'_>]) -> Vec<Option
 mod reproject_tests {
     use super::*;
     use crate::geometry::{Aabb, Intrinsics, Pose};
+    use nalgebra::{Point2, Vector3};
 
-    /// The shared corner images give exactly the footprints of projecting each voxel's eight
-    /// corners on its own, through a distorting lens.
+    /// The `f32` splat gives the footprints of projecting each voxel's eight corners on its own in
+    /// `f64`, through a distorting lens and a pinhole, but for pixels whose centre lies within
+    /// rounding of a rectangle's edge; and it does not depend on the order of the voxels.
     #[test]
-    fn reprojection_shares_corners_without_changing_a_pixel() {
+    fn reprojection_matches_projecting_every_corner_in_f64() {
         let grid = VoxelGrid::from_resolution(&Aabb { min: [-0.05; 3], max: [0.05; 3] }, 40);
         let solid = Occupancy::from_fn(grid, |p| p.norm() < 0.04 && p.z < 0.025);
-        let camera = CameraModel {
-            intrinsics: Intrinsics::new(900.0, 900.0, 320.0, 240.0).with_distortion([-0.1, 0.01, 1e-3, -2e-3, 0.02]),
-            pose: Pose::look_at(Vector3::new(0.25, -0.3, 0.15), Vector3::zeros(), Vector3::z()),
-            width: 640,
-            height: 480,
-        };
+        let lens = Intrinsics::new(900.0, 900.0, 320.0, 240.0).with_distortion([-0.1, 0.01, 1e-3, -2e-3, 0.02]);
+        let pinhole = Intrinsics::new(700.0, 690.0, 311.0, 247.0);
+        for intrinsics in [lens, pinhole] {
+            let camera = CameraModel {
+                intrinsics,
+                pose: Pose::look_at(Vector3::new(0.25, -0.3, 0.15), Vector3::zeros(), Vector3::z()),
+                width: 640,
+                height: 480,
+            };
+            reprojection_matches_f64(&solid, &camera);
+        }
+    }
+
+    fn reprojection_matches_f64(solid: &Occupancy, camera: &CameraModel) {
+        let grid = *solid.grid();
         let boundary = solid.boundary_voxels();
-        let ours = reproject(&solid, &boundary, &camera);
+        let ours = reproject(solid, &boundary, camera);
         let (o, s) = (grid.origin, grid.voxel_size);
         let mut reference = vec![false; 640 * 480];
         for v in &boundary {
@@ -856,11 +773,11 @@ mod reproject_tests {
             .flat_map(|y| (0..640u32).map(move |x| (x, y)))
             .filter(|&(x, y)| ours.get(x, y) != reference[(y * 640 + x) as usize])
             .count();
-        assert_eq!(differ, 0, "{differ} of {set} pixels differ");
-        // In z order, as `reprojection_iou` passes them (each corner then projected once): the same.
+        assert!(differ * 1000 <= set, "{differ} of {set} pixels differ");
+        // In z order, or any other: the same.
         let mut sorted = boundary.clone();
         sorted.sort_unstable_by_key(|v| [v[2], v[1], v[0]]);
-        let again = reproject(&solid, &sorted, &camera);
+        let again = reproject(solid, &sorted, camera);
         let differ = (0..480u32)
             .flat_map(|y| (0..640u32).map(move |x| (x, y)))
             .filter(|&(x, y)| ours.get(x, y) != again.get(x, y))
