@@ -1,9 +1,9 @@
-//! `floor` (and `ceil` for `f32`) without a library call. The x86-64 baseline this crate is built for has no
-//! rounding instruction (SSE4.1's `roundss`/`roundsd`), so `f32::floor` and friends are calls into
-//! libm; in the per-voxel projection loops (footprints, re-projection) those calls cost more than
-//! the arithmetic around them. These give exactly the library's result for every input (NaN and
-//! infinities included), the sign of a zero result aside (`-0.0` comes back as `0.0`), which no
-//! caller can tell apart: they compare, clamp or convert to an integer.
+//! `floor` (and `ceil` for `f32`) without a library call. The x86-64 baseline this crate is built
+//! for has no rounding instruction (SSE4.1's `roundss`/`roundsd`), so `f32::floor` and friends are
+//! calls into libm; in the per-voxel projection loops (footprints, re-projection) those calls cost
+//! more than the arithmetic around them. These give exactly the library's result for every input
+//! (NaN and infinities included), the sign of a zero result aside (`-0.0` comes back as `0.0`),
+//! which no caller can tell apart: they compare, clamp or convert to an integer.
 
 /// Magnitudes from which every `f64` is an integer (2^52).
 const INTEGRAL_F64: f64 = 4_503_599_627_370_496.0;

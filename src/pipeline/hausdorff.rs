@@ -202,9 +202,10 @@ impl<'a> TriangleIndex<'a> {
 
     /// [`Self::distance`] and the nearest triangle (an index into `tris`; [`NO_HINT`] when there is
     /// none), starting from triangle `hint` when it is within a cell edge of `q`: triangles whose
-    /// sphere is beyond it are skipped without their exact distance. Any hint gives the same
-    /// distance, the smallest of the triangles' (the search only ever skips a triangle that cannot
-    /// be nearer than one already measured).
+    /// sphere is beyond it are skipped without their exact distance. Any hint gives the smallest
+    /// of the triangles' distances, as no hint does: the search only skips a triangle whose sphere
+    /// says it cannot be nearer than one already measured (a test that, as before, rounds only
+    /// where two triangles are within rounding of the same distance).
     fn nearest(&self, q: [f64; 3], hint: u32) -> (f64, u32) {
         let c = self.cell_of(q);
         let mut best = Best { d2: f64::INFINITY, d: f64::INFINITY, tri: NO_HINT };
