@@ -10,47 +10,34 @@ const INTEGRAL_F64: f64 = 4_503_599_627_370_496.0;
 /// Magnitudes from which every `f32` is an integer (2^23).
 const INTEGRAL_F32: f32 = 8_388_608.0;
 
-/// `x.floor()`.
-#[inline(always)]
-pub(crate) fn floor_f64(x: f64) -> f64 {
-    // NaN, infinities and large magnitudes are their own floor.
-    if x.is_nan() || x.abs() >= INTEGRAL_F64 {
-        return x;
-    }
-    let t = x as i64 as f64;
-    if t > x {
-        t - 1.0
-    } else {
-        t
-    }
+/// Defines `$name`, `x.floor()` for `$float`, truncating through `$int`, which holds every value
+/// of smaller magnitude than `$integral` (from which on every `$float` is an integer).
+macro_rules! floor_without_libm {
+    ($name:ident, $float:ty, $int:ty, $integral:expr) => {
+        /// `x.floor()`.
+        #[inline(always)]
+        pub(crate) fn $name(x: $float) -> $float {
+            // NaN, infinities and large magnitudes are their own floor.
+            if x.is_nan() || x.abs() >= $integral {
+                return x;
+            }
+            let t = x as $int as $float;
+            if t > x {
+                t - 1.0
+            } else {
+                t
+            }
+        }
+    };
 }
 
-/// `x.floor()`.
-#[inline(always)]
-pub(crate) fn floor_f32(x: f32) -> f32 {
-    if x.is_nan() || x.abs() >= INTEGRAL_F32 {
-        return x;
-    }
-    let t = x as i32 as f32;
-    if t > x {
-        t - 1.0
-    } else {
-        t
-    }
-}
+floor_without_libm!(floor_f64, f64, i64, INTEGRAL_F64);
+floor_without_libm!(floor_f32, f32, i32, INTEGRAL_F32);
 
-/// `x.ceil()`.
+/// `x.ceil()`, as `-floor(-x)` (negation is exact).
 #[inline(always)]
 pub(crate) fn ceil_f32(x: f32) -> f32 {
-    if x.is_nan() || x.abs() >= INTEGRAL_F32 {
-        return x;
-    }
-    let t = x as i32 as f32;
-    if t < x {
-        t + 1.0
-    } else {
-        t
-    }
+    -floor_f32(-x)
 }
 
 #[cfg(test)]
