@@ -22,6 +22,9 @@
 //! patterns, when asked for, are read from the pixels). The result is the whole-surface
 //! iteration's, voxel for voxel.
 
+use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
+
 use rayon::prelude::*;
 
 use super::{restore_silhouettes, ColouredSurface, Dense, PhotoModel, PhotoStats, SeenBy, OCCUPIED};
@@ -38,6 +41,31 @@ const SLOTTED: u8 = 4;
 const NONE: u32 = u32::MAX;
 /// Tile edge, pixels, of the redraw bookkeeping.
 const TILE: usize = 8;
+
+/// Linear voxel index -> slot. A multiplicative hash spreads the indices well enough; the standard
+/// SipHash would cost more than the lookups it serves.
+type SlotMap = HashMap<u32, u32, BuildHasherDefault<LinHasher>>;
+
+/// The hasher of [`SlotMap`]: one multiplication by an odd 64-bit constant (Fibonacci hashing).
+#[derive(Default)]
+struct LinHasher(u64);
+
+impl Hasher for LinHasher {
+    fn finish(&self) -> u64 {
+        // The table takes its bucket from the low bits: fold the well-mixed high half into them.
+        self.0 ^ (self.0 >> 32)
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0.rotate_left(8) ^ u64::from(b)).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        }
+    }
+
+    fn write_u32(&mut self, x: u32) {
+        self.0 = (self.0 ^ u64::from(x)).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    }
+}
 
 /// A footprint as cached: the pixel rectangle `[x0, x1) x [y0, y1)` (empty when `x0 == x1`: the
 /// voxel has no footprint in the view) and the centre's camera depth, metres.
@@ -283,6 +311,8 @@ pub(super) struct Carver<'a> {
     voxels: Vec<[u32; 3]>,
     /// Linear index of each slot's voxel.
     lins: Vec<u32>,
+    /// The slot of each slotted voxel, by linear index.
+    slot_of: SlotMap,
     live: Vec<bool>,
     states: Vec<ViewState>,
     /// Slots given to the start's surface (the first ones).
@@ -309,13 +339,16 @@ impl<'a> Carver<'a> {
     fn new(start: &Occupancy, views: &'a [PhotoView<'a>]) -> Carver<'a> {
         let grid = *start.grid();
         let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
-        let states = cams.iter().map(ViewState::new).collect();
+        // Each view's item buffer is a fresh 8 bytes a pixel: the page faults of zeroing them are
+        // shared between the cores.
+        let states = cams.par_iter().map(ViewState::new).collect();
         let mut c = Carver {
             cams,
             pixels: ViewPixels::all(views),
             dense: Dense::from(start),
             voxels: Vec::new(),
             lins: Vec::new(),
+            slot_of: SlotMap::default(),
             live: Vec::new(),
             states,
             start_slots: 0,
@@ -344,6 +377,7 @@ impl<'a> Carver<'a> {
         for &v in voxels {
             let i = self.dense.index(v);
             self.dense.bits[i] |= SLOTTED;
+            self.slot_of.insert(i as u32, self.voxels.len() as u32);
             self.voxels.push(v);
             self.lins.push(i as u32);
             self.live.push(true);
@@ -411,23 +445,15 @@ impl<'a> Carver<'a> {
             .zip(&self.pixels)
             .map(|(st, px)| st.update(px, carved, &added, live, lins))
             .collect();
-        // Slots of the touched neighbours: binary search over the (sorted by slot, and slots are
-        // handed out in batches of increasing index) is not possible across batches, so map them.
-        let mut todo: Vec<u32> = added.clone();
-        if !touched.is_empty() {
-            touched.sort_unstable();
-            touched.dedup();
-            for (s, &lin) in self.lins.iter().enumerate() {
-                if self.live[s] && touched.binary_search(&lin).is_ok() {
-                    todo.push(s as u32);
-                }
-            }
-        }
-        let mut flagged = vec![false; self.voxels.len()];
-        for s in todo.drain(..).chain(marks.into_iter().flatten()) {
-            flagged[s as usize] = self.live[s as usize];
-        }
-        (0..flagged.len() as u32).filter(|&s| flagged[s as usize]).collect()
+        // The live slots among the added ones, the touched neighbours and the marked owners, in
+        // increasing slot order (without a pass over every slot: this runs on one core).
+        let mut todo: Vec<u32> = added;
+        todo.extend(touched.iter().map(|lin| self.slot_of[lin]));
+        todo.extend(marks.into_iter().flatten());
+        todo.retain(|&s| self.live[s as usize]);
+        todo.sort_unstable();
+        todo.dedup();
+        todo
     }
 
     /// The live slots' voxels coloured (in increasing linear index), and their re-projection error
