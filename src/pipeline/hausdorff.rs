@@ -5,6 +5,14 @@
 //! through a dense uniform grid of triangle bounding boxes searched in growing shells of cells. The
 //! directed distance is the largest over the samples (a lower bound of the true directed Hausdorff
 //! distance that converges as the samples grow dense), the symmetric one the larger of both.
+//!
+//! A caller that already bounds the distance of a surface's vertices to the other surface (a
+//! simplification tracks every input vertex on a triangle of its output) passes the bounds to
+//! [`hausdorff_outliers_to`]: a vertex whose bound cannot reach the largest distance the area samples
+//! measured, nor the outlier threshold, is then not measured, which leaves the maxima and the
+//! outliers as they were and spares most of the queries.
+
+use std::cmp::Ordering;
 
 use rayon::prelude::*;
 
@@ -20,9 +28,11 @@ pub struct Hausdorff {
     pub backward_m: f64,
     /// The larger of both.
     pub symmetric_m: f64,
-    /// Mean distance over the samples of both directions.
+    /// Mean distance over the area samples of both directions (the vertices count in the maxima
+    /// only: they are as many as the mesh is fine, not as its area is large).
     pub mean_m: f64,
-    /// Samples per direction: the surface's vertices plus its area samples.
+    /// Samples per direction: the surface's vertices plus its area samples (a vertex whose distance
+    /// a caller's bound keeps below the maximum counts without being measured).
     pub samples: [usize; 2],
 }
 
@@ -346,7 +356,7 @@ pub fn hausdorff_outliers(
     samples: usize,
     beyond_m: f64,
 ) -> Option<(Hausdorff, Vec<[f32; 3]>)> {
-    hausdorff_outliers_to(a, &Reference::new(b, samples)?, beyond_m)
+    hausdorff_outliers_to(a, &Reference::new(b, samples)?, beyond_m, None)
 }
 
 /// A surface prepared to be measured against by [`hausdorff_outliers_to`]: its triangle index and
@@ -357,6 +367,8 @@ pub fn hausdorff_outliers(
 pub struct Reference<'a> {
     index: TriangleIndex<'a>,
     points: Vec<[f32; 3]>,
+    /// The first `vertices` of `points` are the mesh's vertices.
+    vertices: usize,
     /// Area samples per surface, for the other surface too.
     samples: usize,
 }
@@ -372,39 +384,107 @@ impl<'a> Reference<'a> {
         let mut points = Vec::with_capacity(mesh.vertices.len() + area.len());
         points.extend_from_slice(&mesh.vertices);
         points.extend(area);
-        Some(Reference { index: index?, points, samples })
+        Some(Reference { index: index?, points, vertices: mesh.vertices.len(), samples })
     }
 }
 
 /// [`hausdorff_outliers`] with the second surface prepared ([`Reference`]); `a` gets as many area
-/// samples as the reference has.
-pub fn hausdorff_outliers_to(a: &TriangleMesh, b: &Reference<'_>, beyond_m: f64) -> Option<(Hausdorff, Vec<[f32; 3]>)> {
-    let measure = |pts: &[[f32; 3]], to: &TriangleIndex<'_>| {
-        let d = to.distances(pts);
-        let max = d.iter().copied().fold(0.0, f64::max);
-        let far: Vec<[f32; 3]> = pts.iter().zip(&d).filter(|(_, &x)| x > beyond_m).map(|(p, _)| *p).collect();
-        (max, d.iter().sum::<f64>(), d.len(), far)
-    };
+/// samples as the reference has. `b_vertex_bounds`, when given, holds for each vertex of the
+/// reference an upper bound, metres, of its distance to `a` (module docs): a vertex whose bound
+/// stays below both the largest distance of the reference's area samples and `beyond_m` is not
+/// measured. The bounds may be short of the true distances by the rounding of `a`'s corners to `f32`
+/// (they are taken as that much larger).
+pub fn hausdorff_outliers_to(
+    a: &TriangleMesh,
+    b: &Reference<'_>,
+    beyond_m: f64,
+    b_vertex_bounds: Option<&[f64]>,
+) -> Option<(Hausdorff, Vec<[f32; 3]>)> {
     // Each direction starts as soon as its own part is ready: `a`'s samples are measured against
     // the reference while `a` is indexed for the reference's samples.
     let (to_b, to_a) = rayon::join(
         || {
             let mut pts: Vec<[f32; 3]> = a.vertices.clone();
             pts.extend(sample_mesh(a, b.samples, SEEDS[0]));
-            measure(&pts, &b.index)
+            let d = b.index.distances(&pts);
+            Directed::of(&pts, &d, a.vertices.len(), beyond_m)
         },
-        || TriangleIndex::new(a).map(|ia| measure(&b.points, &ia)),
+        || {
+            let ia = TriangleIndex::new(a)?;
+            let (vertices, area) = b.points.split_at(b.vertices);
+            let d = ia.distances(area);
+            let from_area = Directed::of(area, &d, 0, beyond_m);
+            // A vertex is measured unless its bound keeps it below what the area samples reached
+            // and below the outlier threshold.
+            let reach = from_area.max.min(beyond_m);
+            let slack = rounding_of(a);
+            let measured: Vec<[f32; 3]> = match b_vertex_bounds {
+                Some(bounds) if bounds.len() == vertices.len() => vertices
+                    .iter()
+                    .zip(bounds)
+                    // A NaN bound bounds nothing: measured too.
+                    .filter(|(_, &bound)| matches!((bound + slack).partial_cmp(&reach), Some(Ordering::Greater) | None))
+                    .map(|(p, _)| *p)
+                    .collect(),
+                _ => vertices.to_vec(),
+            };
+            let d = ia.distances(&measured);
+            let from_vertices = Directed::of(&measured, &d, measured.len(), beyond_m);
+            Some(from_area.with(from_vertices, vertices.len()))
+        },
     );
-    let ((f, fs, fn_, mut far), (g, gs, gn, far_b)) = (to_b, to_a?);
-    far.extend(far_b);
+    let (f, g) = (to_b, to_a?);
     let h = Hausdorff {
-        forward_m: f,
-        backward_m: g,
-        symmetric_m: f.max(g),
-        mean_m: (fs + gs) / (fn_ + gn).max(1) as f64,
-        samples: [fn_, gn],
+        forward_m: f.max,
+        backward_m: g.max,
+        symmetric_m: f.max.max(g.max),
+        mean_m: (f.area_sum + g.area_sum) / (f.area_n + g.area_n).max(1) as f64,
+        samples: [f.points, g.points],
     };
+    let mut far = f.far;
+    far.extend(g.far);
     Some((h, far))
+}
+
+/// One direction's figures over a set of points (metres).
+struct Directed {
+    max: f64,
+    /// Sum and count of the area samples' distances (the points after the vertices).
+    area_sum: f64,
+    area_n: usize,
+    /// Points the direction covers (measured or bounded).
+    points: usize,
+    far: Vec<[f32; 3]>,
+}
+
+impl Directed {
+    /// The figures of `pts` at distances `d`, the first `vertices` of them vertices.
+    fn of(pts: &[[f32; 3]], d: &[f64], vertices: usize, beyond_m: f64) -> Directed {
+        let area = &d[vertices.min(d.len())..];
+        Directed {
+            max: d.iter().copied().fold(0.0, f64::max),
+            area_sum: area.iter().sum(),
+            area_n: area.len(),
+            points: pts.len(),
+            far: pts.iter().zip(d).filter(|(_, &x)| x > beyond_m).map(|(p, _)| *p).collect(),
+        }
+    }
+
+    /// These area samples' figures with the measured vertices' (`v`, all vertices) added, the
+    /// direction covering `vertices` vertices besides the samples.
+    fn with(mut self, v: Directed, vertices: usize) -> Directed {
+        self.max = self.max.max(v.max);
+        self.points += vertices;
+        self.far.extend(v.far);
+        self
+    }
+}
+
+/// How far, metres, rounding the corners of `mesh` to `f32` may have moved any point of its
+/// triangles: half a unit in the last place of its largest coordinate on each axis, taken twice.
+fn rounding_of(mesh: &TriangleMesh) -> f64 {
+    let largest = mesh.vertices.iter().flatten().fold(0.0f64, |m, &x| m.max(f64::from(x).abs()));
+    largest * f64::from(f32::EPSILON) * 3f64.sqrt()
 }
 
 fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {
@@ -521,6 +601,45 @@ mod tests {
         // that is often not the answer: the queries are scattered), returned in the queries' order.
         let one_by_one: Vec<f64> = queries.iter().map(|q| index.distance(q.map(f64::from))).collect();
         assert_eq!(index.distances(&queries), one_by_one);
+    }
+
+    /// Vertex bounds spare the vertices that cannot reach the maximum or the outlier threshold and
+    /// change no figure, while a vertex whose bound reaches either is measured. Bounds below the
+    /// truth (a caller's error) show that the bounded vertices really go unmeasured.
+    #[test]
+    fn vertex_bounds_spare_queries_without_changing_the_figures() {
+        let outer = cube([0.0, 0.0, 0.0], 2.0);
+        // The inner cube with one corner pushed in to 0.9 from the outer surface: that vertex, not
+        // an area sample, is the farthest point of the inner surface.
+        let mut inner = cube([0.0, 0.0, 0.0], 1.0);
+        inner.vertices[0] = [-0.1, -0.1, -0.1];
+        let reference = Reference::new(&inner, 2_000).expect("triangles");
+        let to_outer = TriangleIndex::new(&outer).expect("triangles");
+        let exact: Vec<f64> = inner.vertices.iter().map(|v| to_outer.distance(v.map(f64::from))).collect();
+        let sorted = |mut f: Vec<[f32; 3]>| {
+            f.sort_by(|a, b| a.partial_cmp(b).expect("finite"));
+            f
+        };
+        // With outliers asked for (beyond 0.6) and without (every distance within infinity).
+        for beyond in [0.6, f64::INFINITY] {
+            let (plain, plain_far) = hausdorff_outliers_to(&outer, &reference, beyond, None).expect("distance");
+            let (bounded, far) = hausdorff_outliers_to(&outer, &reference, beyond, Some(&exact)).expect("distance");
+            assert_eq!(bounded, plain, "beyond {beyond}");
+            assert_eq!(sorted(far), sorted(plain_far), "beyond {beyond}");
+            assert!((plain.backward_m - 0.9).abs() < 1e-6, "{plain:?}");
+        }
+        let beyond = 0.6;
+        let (plain, plain_far) = hausdorff_outliers_to(&outer, &reference, beyond, None).expect("distance");
+        assert!(plain_far.contains(&inner.vertices[0]));
+        // Bounds of zero: no vertex is measured, so the pushed-in corner is neither the maximum nor
+        // an outlier, though every vertex still counts.
+        let (blind, blind_far) = hausdorff_outliers_to(&outer, &reference, beyond, Some(&[0.0; 8])).expect("distance");
+        assert!(blind.backward_m < 0.9 - 1e-4, "{blind:?}");
+        assert!(!blind_far.contains(&inner.vertices[0]));
+        assert_eq!((blind.forward_m, blind.samples), (plain.forward_m, plain.samples));
+        // Bounds of the wrong length are ignored.
+        let (short, _) = hausdorff_outliers_to(&outer, &reference, beyond, Some(&[0.0; 3])).expect("distance");
+        assert_eq!(short, plain);
     }
 
     #[test]

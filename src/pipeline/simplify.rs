@@ -601,6 +601,32 @@ impl<'o> Work<'o> {
         Ok(())
     }
 
+    /// Each original vertex's distance (metres) to the current triangle it is tracked on (infinite
+    /// for a vertex on no triangle), the live triangles measured in parallel.
+    fn tracked_distances(&self) -> Vec<f64> {
+        let per_triangle: Vec<(u32, f64)> = (0..self.tris.len())
+            .into_par_iter()
+            .filter(|&t| self.alive_tri[t])
+            .flat_map_iter(|t| {
+                let corners = self.tris[t].map(|i| self.pos[i as usize]);
+                let mut x = self.first_point[t];
+                std::iter::from_fn(move || {
+                    (x != NONE).then(|| {
+                        let d = point_triangle_distance2(self.original.pos[x as usize], &corners).sqrt();
+                        let here = (x, d);
+                        x = self.next_point[x as usize];
+                        here
+                    })
+                })
+            })
+            .collect();
+        let mut out = vec![f64::INFINITY; self.next_point.len()];
+        for (x, d) in per_triangle {
+            out[x as usize] = d;
+        }
+        out
+    }
+
     /// Fill `by_face` and `face_start` from `points` (a counting sort by face).
     fn group_points_by_face(&mut self) {
         let faces = self.faces.len();
@@ -704,27 +730,31 @@ const MAX_REGIONS: usize = 16;
 /// checks either way, so the bound holds the same; the result depends on the number of regions, not
 /// on the number of threads.
 pub fn simplify_in(mesh: &TriangleMesh, params: &SimplifyParams, regions: usize) -> (TriangleMesh, SimplifyStats) {
-    let (simple, stats, ()) = simplify_kept(mesh, params, regions, &vec![false; mesh.vertices.len()], || ());
+    let (simple, stats, _, ()) = simplify_kept(mesh, params, regions, &vec![false; mesh.vertices.len()], false, || ());
     (simple, stats)
 }
 
 /// [`simplify_in`] with the vertices `keep` marks (indexed like `mesh.vertices`) neither moved nor
 /// removed, and `beside` run beside its last pass (serial: the collapses at the cuts, or the whole
-/// mesh when it is not cut), on a core that pass leaves idle.
+/// mesh when it is not cut), on a core that pass leaves idle. With `bounds`, also each input
+/// vertex's distance (metres) to the triangle of the result it is tracked on, an upper bound of its
+/// distance to the result before the result's corners are rounded to `f32` (infinite for a vertex
+/// on no triangle; empty without `bounds` or when nothing was simplified).
 fn simplify_kept<R: Send>(
     mesh: &TriangleMesh,
     params: &SimplifyParams,
     regions: usize,
     keep: &[bool],
+    bounds: bool,
     beside: impl FnOnce() -> R + Send,
-) -> (TriangleMesh, SimplifyStats, R) {
+) -> (TriangleMesh, SimplifyStats, Vec<f64>, R) {
     let mut stats = SimplifyStats { triangles_before: mesh.triangles.len(), ..SimplifyStats::default() };
     let n = mesh.vertices.len();
     let valid = mesh.triangles.iter().all(|t| t.iter().all(|&i| (i as usize) < n));
     let bound2 = params.max_error_m * params.max_error_m;
     if !(valid && bound2 > 0.0 && bound2.is_finite()) || mesh.triangles.is_empty() || n >= NONE as usize {
         stats.triangles_after = mesh.triangles.len();
-        return (mesh.clone(), stats, beside());
+        return (mesh.clone(), stats, Vec::new(), beside());
     }
     let centre = {
         let mut c = [0f64; 3];
@@ -787,7 +817,8 @@ fn simplify_kept<R: Send>(
     }
     out.colors = colors;
     stats.triangles_after = out.triangles.len();
-    (out, stats, beside)
+    let tracked = if bounds { work.tracked_distances() } else { Vec::new() };
+    (out, stats, tracked, beside)
 }
 
 /// The edges `a < b` of the live triangles that `wanted` accepts, queued (those with a locked end
@@ -981,16 +1012,20 @@ fn simplify_checked(
     let regions = regions_for(mesh);
     let mut keep = vec![false; mesh.vertices.len()];
     let t = Instant::now();
-    let (mut simple, mut stats, early) =
-        simplify_kept(mesh, &params, regions, &keep, || beside.then(|| Reference::new(mesh, samples)));
+    let (mut simple, mut stats, mut tracked, early) =
+        simplify_kept(mesh, &params, regions, &keep, true, || beside.then(|| Reference::new(mesh, samples)));
     let mut simplify_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
     let reference = early.unwrap_or_else(|| Reference::new(mesh, samples));
     let (mut check_s, mut repairs) = (t.elapsed().as_secs_f64(), 0);
     loop {
         let t = Instant::now();
-        let (hausdorff, far) =
-            reference.as_ref().and_then(|r| hausdorff_outliers_to(&simple, r, max_error_m)).unwrap_or_default();
+        // Every input vertex is within its tracked distance of the result: only those that could
+        // reach the largest distance of the samples are measured.
+        let (hausdorff, far) = reference
+            .as_ref()
+            .and_then(|r| hausdorff_outliers_to(&simple, r, max_error_m, Some(&tracked)))
+            .unwrap_or_default();
         check_s += t.elapsed().as_secs_f64();
         let within_bound = far.is_empty();
         if within_bound || repairs == MAX_REPAIRS || !keep_around(mesh, &simple, &far, &mut keep) {
@@ -999,7 +1034,7 @@ fn simplify_checked(
         }
         repairs += 1;
         let t = Instant::now();
-        (simple, stats, ()) = simplify_kept(mesh, &params, regions, &keep, || ());
+        (simple, stats, tracked, ()) = simplify_kept(mesh, &params, regions, &keep, true, || ());
         simplify_s += t.elapsed().as_secs_f64();
     }
 }
@@ -1193,6 +1228,31 @@ mod tests {
         assert!(counts.iter().all(|&c| c * 20 <= counts[0] * 21), "{counts:?}");
     }
 
+    /// Each input vertex's tracked distance bounds its distance to the simplified surface (whole and
+    /// in regions), so the check that skips the vertices those bounds keep below its maximum gives
+    /// the figures and outliers of measuring every vertex.
+    #[test]
+    fn tracked_distances_bound_the_vertices_and_leave_the_check_unchanged() {
+        let (grid, mesh) = noisy_sphere(0.2);
+        let bound = 0.25 * grid.voxel_size;
+        let params = SimplifyParams { max_error_m: bound };
+        let keep = vec![false; mesh.vertices.len()];
+        for regions in [1, 3] {
+            let (simple, _, tracked, ()) = simplify_kept(&mesh, &params, regions, &keep, true, || ());
+            assert_eq!(tracked.len(), mesh.vertices.len());
+            let to_simple = TriangleIndex::new(&simple).expect("triangles");
+            let slack = 1e-6 * grid.voxel_size;
+            for (v, &t) in mesh.vertices.iter().zip(&tracked) {
+                let d = to_simple.distance(v.map(f64::from));
+                assert!(d <= t + slack && t <= bound, "{regions}: vertex at {d} tracked at {t}, bound {bound}");
+            }
+        }
+        let (simple, s) = simplify_within(&mesh, bound, 20_000).expect("bound > 0");
+        let (every, far) = hausdorff_outliers(&simple, &mesh, 20_000, bound).expect("triangles");
+        assert_eq!(s.hausdorff, every);
+        assert!(far.is_empty() && s.within_bound);
+    }
+
     /// A sphere with two voxels of radial noise: with the per-vertex checks alone the insides of its
     /// simplified triangles left the bound (a sample 1.14 bounds away); with the probes a sample
     /// still does, and a repair brings every sample within the bound both ways.
@@ -1232,7 +1292,7 @@ mod tests {
         let kept: Vec<[f32; 3]> = mesh.vertices.iter().zip(&keep).filter(|(_, &k)| k).map(|(v, _)| *v).collect();
         assert!(kept.len() > 10 && kept.len() * 4 < mesh.vertices.len(), "{} kept", kept.len());
         for regions in [1, 3] {
-            let (simple, stats, ()) = simplify_kept(&mesh, &params, regions, &keep, || ());
+            let (simple, stats, _, ()) = simplify_kept(&mesh, &params, regions, &keep, false, || ());
             assert!(stats.collapses > 0);
             for v in &kept {
                 assert!(simple.vertices.contains(v), "{regions}: kept vertex {v:?} moved or went");
