@@ -41,6 +41,8 @@
 //!
 //! Positions are metres in the mesh's own frame (worked in `f64` relative to the centroid).
 
+use std::sync::atomic::{AtomicUsize, Ordering as AtomicOrdering};
+use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -265,6 +267,7 @@ impl Original {
 /// The state of a simplification, to start or resume one: current positions, triangles, quadrics,
 /// which vertices live, and the triangle each original vertex is tracked on (`NONE` for a vertex on
 /// no triangle).
+#[derive(Default)]
 struct State {
     pos: Vec<[f64; 3]>,
     tris: Vec<[u32; 3]>,
@@ -735,8 +738,9 @@ pub fn simplify_in(mesh: &TriangleMesh, params: &SimplifyParams, regions: usize)
 }
 
 /// [`simplify_in`] with the vertices `keep` marks (indexed like `mesh.vertices`) neither moved nor
-/// removed, and `beside` run beside its last pass (serial: the collapses at the cuts, or the whole
-/// mesh when it is not cut), on a core that pass leaves idle. With `bounds`, also each input
+/// removed, and `beside` run on a core the simplification leaves idle: beside its serial last pass
+/// (the whole mesh when it is not cut), or, when it is cut, from when the first thread finds no
+/// region left to take (beside the last regions, then beside the pass at the cuts). With `bounds`, also each input
 /// vertex's distance (metres) to the triangle of the result it is tracked on, an upper bound of its
 /// distance to the result before the result's corners are rounded to `f32` (infinite for a vertex
 /// on no triangle; empty without `bounds` or when nothing was simplified).
@@ -768,37 +772,69 @@ fn simplify_kept<R: Send>(
     let pos: Vec<[f64; 3]> = mesh.vertices.iter().map(|v| [0, 1, 2].map(|a| f64::from(v[a]) - centre[a])).collect();
     let original = Original::new(pos, mesh.triangles.clone());
     let quadric = original.quadrics();
-    let mut state = State::start(&original, quadric);
-    let mut seam = vec![false; n];
-    if regions > 1 {
+    let state = State::start(&original, quadric);
+    // The whole mesh, nothing locked: everything when it was not split, else the edges at the cuts.
+    let whole_pass = |state: State, seam: &[bool], stats: &mut SimplifyStats| {
+        let mut work = Work::new(&original, state, keep.to_vec(), bound2);
+        let at_cuts = |a: u32, b: u32| seam.is_empty() || seam[a as usize] || seam[b as usize];
+        work.run(&mut queue_edges(&work, params.max_error_m, at_cuts), stats);
+        work
+    };
+    let (work, beside) = if regions > 1 {
         let split = Split::new(&original, regions);
         // Each region's result goes into the whole mesh's state as soon as it is done, so only the
         // regions being worked on hold a state of their own. Regions own disjoint vertices and
-        // triangles, so the order they finish in does not change the result.
-        let shared = std::sync::Mutex::new(state);
-        let done = (0..regions)
-            .into_par_iter()
-            .map(|r| {
-                let (sub, sub_state, sub_locked) = split.region(&original, &shared, r, keep);
-                let mut work = Work::new(&sub, sub_state, sub_locked, bound2);
-                let mut sub_stats = SimplifyStats::default();
-                work.run(&mut queue_edges(&work, params.max_error_m, |_, _| true), &mut sub_stats);
-                let sub_state = work.into_state();
-                drop(sub);
-                split.absorb(r, sub_state, &mut shared.lock().unwrap_or_else(|e| e.into_inner()));
-                (sub_stats.collapses, sub_stats.refused_by_distance)
-            })
-            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
-        stats.collapses += done.0;
-        stats.refused_by_distance += done.1;
-        state = shared.into_inner().unwrap_or_else(|e| e.into_inner());
-        seam = split.seam;
-    }
-    // The whole mesh, nothing locked: everything when it was not split, else the edges at the cuts.
-    let mut work = Work::new(&original, state, keep.to_vec(), bound2);
-    let at_cuts = |a: u32, b: u32| regions == 1 || seam[a as usize] || seam[b as usize];
-    let (_, beside) =
-        rayon::join(|| work.run(&mut queue_edges(&work, params.max_error_m, at_cuts), &mut stats), beside);
+        // triangles, so the order they finish in does not change the result. Each thread takes
+        // the next region until none is left; the one that finishes the last region makes the
+        // pass at the cuts, and the first to find none left runs `beside` (so `beside` fills the
+        // cores the last regions leave idle, then runs beside that pass).
+        let shared = Mutex::new(state);
+        let (next, finished) = (AtomicUsize::new(0), AtomicUsize::new(0));
+        let region_stats = Mutex::new(SimplifyStats::default());
+        let beside = Mutex::new(Some(beside));
+        let (beside_out, whole) = (Mutex::new(None), Mutex::new(None));
+        let worker = || loop {
+            let r = next.fetch_add(1, AtomicOrdering::Relaxed);
+            if r >= regions {
+                if let Some(f) = lock(&beside).take() {
+                    *lock(&beside_out) = Some(f());
+                }
+                return;
+            }
+            let (sub, sub_state, sub_locked) = split.region(&original, &shared, r, keep);
+            let mut work = Work::new(&sub, sub_state, sub_locked, bound2);
+            let mut sub_stats = SimplifyStats::default();
+            work.run(&mut queue_edges(&work, params.max_error_m, |_, _| true), &mut sub_stats);
+            let sub_state = work.into_state();
+            drop(sub);
+            split.absorb(r, sub_state, &mut lock(&shared));
+            {
+                let mut total = lock(&region_stats);
+                total.collapses += sub_stats.collapses;
+                total.refused_by_distance += sub_stats.refused_by_distance;
+            }
+            if finished.fetch_add(1, AtomicOrdering::AcqRel) + 1 == regions {
+                let state = std::mem::take(&mut *lock(&shared));
+                let mut cut_stats = SimplifyStats::default();
+                let work = whole_pass(state, &split.seam, &mut cut_stats);
+                *lock(&whole) = Some((work, cut_stats));
+            }
+        };
+        rayon::scope(|s| {
+            for _ in 1..rayon::current_num_threads().clamp(1, regions) {
+                s.spawn(|_| worker());
+            }
+            worker();
+        });
+        let region_stats = region_stats.into_inner().unwrap_or_else(PoisonError::into_inner);
+        let (work, cut_stats) =
+            whole.into_inner().unwrap_or_else(PoisonError::into_inner).expect("every region finished");
+        stats.collapses += region_stats.collapses + cut_stats.collapses;
+        stats.refused_by_distance += region_stats.refused_by_distance + cut_stats.refused_by_distance;
+        (work, beside_out.into_inner().unwrap_or_else(PoisonError::into_inner).expect("a worker ran it"))
+    } else {
+        rayon::join(|| whole_pass(state, &[], &mut stats), beside)
+    };
     // Compact.
     let mut remap = vec![NONE; n];
     let mut out = TriangleMesh::default();
@@ -819,6 +855,11 @@ fn simplify_kept<R: Send>(
     stats.triangles_after = out.triangles.len();
     let tracked = if bounds { work.tracked_distances() } else { Vec::new() };
     (out, stats, tracked, beside)
+}
+
+/// The data behind `m`, also when a thread panicked holding it (the panic is propagated anyway).
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 /// The edges `a < b` of the live triangles that `wanted` accepts, queued (those with a locked end
@@ -888,7 +929,7 @@ impl Split {
     fn region(
         &self,
         original: &Original,
-        shared: &std::sync::Mutex<State>,
+        shared: &Mutex<State>,
         r: usize,
         keep: &[bool],
     ) -> (Original, State, Vec<bool>) {
@@ -897,7 +938,7 @@ impl Split {
             triangles.iter().map(|&t| original.tris[t as usize].map(|v| self.local[v as usize])).collect();
         let sub = Original::new(vertices.iter().map(|&v| original.pos[v as usize]).collect(), tris);
         let quadric = {
-            let guard = shared.lock().unwrap_or_else(|e| e.into_inner());
+            let guard = lock(shared);
             vertices.iter().map(|&v| guard.quadric[v as usize]).collect()
         };
         let sub_state = State::start(&sub, quadric);
@@ -963,8 +1004,8 @@ pub struct Simplification {
     /// Times the input was simplified again with the vertices around samples beyond the bound kept.
     pub repairs: usize,
     /// Wall-clock time of the simplification, seconds, with the input's half of the Hausdorff check
-    /// (its index and samples) when that was prepared beside the simplification's serial last pass
-    /// (inputs of at most a million triangles).
+    /// (its index and samples) when that was prepared beside the simplification (inputs of at most a
+    /// million triangles).
     pub simplify_s: f64,
     /// Wall-clock time of the Hausdorff check, seconds (without the input's half when that was
     /// prepared beside the simplification).
@@ -997,8 +1038,8 @@ pub fn simplify_within(
 }
 
 /// [`simplify_within`], with the input's half of the check (its index and samples) prepared once and
-/// kept across repairs: `beside` the first simplification's serial last pass (on the core that pass
-/// leaves idle), or after it.
+/// kept across repairs: `beside` the first simplification (on a core it leaves idle, see
+/// [`simplify_kept`]), or after it.
 fn simplify_checked(
     mesh: &TriangleMesh,
     max_error_m: f64,
@@ -1226,6 +1267,31 @@ mod tests {
         }
         // The seams are simplified as well as the rest: within 5 % of the whole mesh's count.
         assert!(counts.iter().all(|&c| c * 20 <= counts[0] * 21), "{counts:?}");
+    }
+
+    /// The regions go to whichever thread is free and the pass at the cuts to the one that finishes
+    /// the last: on 1, 2 or 3 threads the meshes, counts and measurements are the same.
+    #[test]
+    fn the_result_does_not_depend_on_the_threads() {
+        let (grid, mesh) = noisy_sphere(0.2);
+        let bound = 0.25 * grid.voxel_size;
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+            pool.install(|| {
+                let split = simplify_in(&mesh, &SimplifyParams { max_error_m: bound }, 5);
+                let (checked, s) = simplify_checked(&mesh, bound, 20_000, true).expect("bound > 0");
+                (split, checked, Simplification { simplify_s: 0.0, check_s: 0.0, ..s })
+            })
+        };
+        let one = run(1);
+        assert!(one.0 .1.collapses > 1000 && one.2.stats.collapses > 1000, "{:?}", one.2);
+        for threads in [2, 3] {
+            let other = run(threads);
+            assert_eq!((&other.0 .0.vertices, &other.0 .0.triangles), (&one.0 .0.vertices, &one.0 .0.triangles));
+            assert_eq!(other.0 .1, one.0 .1, "{threads} threads");
+            assert_eq!((&other.1.vertices, &other.1.triangles), (&one.1.vertices, &one.1.triangles));
+            assert_eq!(other.2, one.2, "{threads} threads");
+        }
     }
 
     /// Each input vertex's tracked distance bounds its distance to the simplified surface (whole and
