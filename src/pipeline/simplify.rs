@@ -796,7 +796,10 @@ fn simplify_kept<R: Send>(
         let worker = || loop {
             let r = next.fetch_add(1, AtomicOrdering::Relaxed);
             if r >= regions {
-                if let Some(f) = lock(&beside).take() {
+                // Taken out of the lock first: held through `f`, it would keep the other threads,
+                // blocked on it, from helping with the work `f` spawns.
+                let f = lock(&beside).take();
+                if let Some(f) = f {
                     *lock(&beside_out) = Some(f());
                 }
                 return;
