@@ -86,11 +86,14 @@ const MAX_CELLS_PER_AXIS: f64 = 256.0;
 
 impl<'a> TriangleIndex<'a> {
     /// Index the triangles of `mesh` (those with indices out of range are left out); `None` when none is left.
+    ///
+    /// The per-triangle steps run in parallel; the sums and the cell lists are made in triangle
+    /// order, so the index is the same on any number of threads.
     pub fn new(mesh: &'a TriangleMesh) -> Option<TriangleIndex<'a>> {
         let n = mesh.vertices.len();
         let packed: Vec<Packed> = mesh
             .triangles
-            .iter()
+            .par_iter()
             .filter(|t| t.iter().all(|&i| (i as usize) < n))
             .map(|t| Packed::new(t.map(|i| mesh.vertices[i as usize])))
             .collect();
@@ -119,27 +122,31 @@ impl<'a> TriangleIndex<'a> {
             TriangleIndex { mesh, tris: Vec::new(), cell, origin: lo, dims, start: Vec::new(), items: Vec::new() };
         let cells = dims.iter().map(|&d| d as usize).product::<usize>();
         // The triangles in the order of their centroid's cell (a counting sort).
-        let home: Vec<usize> =
-            packed.iter().map(|p| index.cell_index(index.clamped_cell_of(p.centre.map(f64::from)))).collect();
+        let home: Vec<u32> = packed
+            .par_iter()
+            .map(|p| index.cell_index(index.clamped_cell_of(p.centre.map(f64::from))) as u32)
+            .collect();
         let mut count = vec![0u32; cells + 1];
         for &h in &home {
-            count[h + 1] += 1;
+            count[h as usize + 1] += 1;
         }
         for i in 0..cells {
             count[i + 1] += count[i];
         }
         let mut order = vec![0u32; packed.len()];
         for (t, &h) in home.iter().enumerate() {
-            order[count[h] as usize] = t as u32;
-            count[h] += 1;
+            order[count[h as usize] as usize] = t as u32;
+            count[h as usize] += 1;
         }
         drop(home);
-        index.tris = order.iter().map(|&t| packed[t as usize]).collect();
+        index.tris = order.par_iter().map(|&t| packed[t as usize]).collect();
         drop(packed);
-        // Each cell's list of the triangles whose bounding box reaches it.
+        // Each cell's list of the triangles whose bounding box reaches it: the box's cell ranges
+        // found side by side, then counted and filled in triangle order.
+        let ranges: Vec<[[i32; 3]; 2]> = index.tris.par_iter().map(|p| index.cell_range(&p.corners())).collect();
         count.fill(0);
-        for p in &index.tris {
-            index.for_cells(&p.corners(), |i| count[i] += 1);
+        for r in &ranges {
+            index.for_cells_in(r, |i| count[i] += 1);
         }
         let mut total = 0u32;
         for c in count.iter_mut() {
@@ -149,8 +156,8 @@ impl<'a> TriangleIndex<'a> {
         }
         let mut fill = count.clone();
         let mut items = vec![0u32; total as usize];
-        for (t, p) in index.tris.iter().enumerate() {
-            index.for_cells(&p.corners(), |i| {
+        for (t, r) in ranges.iter().enumerate() {
+            index.for_cells_in(r, |i| {
                 items[fill[i] as usize] = t as u32;
                 fill[i] += 1;
             });
@@ -187,10 +194,14 @@ impl<'a> TriangleIndex<'a> {
         (c[0] as usize) + self.dims[0] as usize * ((c[1] as usize) + self.dims[1] as usize * c[2] as usize)
     }
 
-    /// Call `f` with the index of every cell the triangle's bounding box reaches.
-    fn for_cells(&self, corners: &[[f64; 3]; 3], mut f: impl FnMut(usize)) {
+    /// The first and last cell (clamped to the grid) the triangle's bounding box reaches.
+    fn cell_range(&self, corners: &[[f64; 3]; 3]) -> [[i32; 3]; 2] {
         let (a, b) = bbox(corners);
-        let (ca, cb) = (self.clamped_cell_of(a), self.clamped_cell_of(b));
+        [self.clamped_cell_of(a), self.clamped_cell_of(b)]
+    }
+
+    /// Call `f` with the index of every cell from `ca` to `cb` (a [`Self::cell_range`]).
+    fn for_cells_in(&self, [ca, cb]: &[[i32; 3]; 2], mut f: impl FnMut(usize)) {
         for z in ca[2]..=cb[2] {
             for y in ca[1]..=cb[1] {
                 for x in ca[0]..=cb[0] {
@@ -601,6 +612,59 @@ mod tests {
         // that is often not the answer: the queries are scattered), returned in the queries' order.
         let one_by_one: Vec<f64> = queries.iter().map(|q| index.distance(q.map(f64::from))).collect();
         assert_eq!(index.distances(&queries), one_by_one);
+    }
+
+    /// The index holds every triangle once, in the order of its centroid's cell, and each cell
+    /// lists exactly the triangles whose bounding box reaches it, in that order; built on one
+    /// thread or on three, it is the same.
+    #[test]
+    fn the_index_is_its_definition_on_any_number_of_threads() {
+        use crate::geometry::{Aabb, VoxelGrid};
+        use crate::pipeline::{extract_surface, MeshParams, Occupancy};
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [-1.0; 3], max: [1.0; 3] }, 20);
+        let occ = Occupancy::from_fn(grid, |p| (p.x / 0.8).powi(2) + (p.y / 0.5).powi(2) + (p.z / 0.6).powi(2) < 1.0);
+        let mesh = extract_surface(&occ, &MeshParams::default()).expect("mesh");
+        let built: Vec<TriangleIndex<'_>> = [1, 3]
+            .map(|threads| {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+                pool.install(|| TriangleIndex::new(&mesh).expect("triangles"))
+            })
+            .into();
+        let index = &built[0];
+        let corners = |i: &TriangleIndex<'_>| i.tris.iter().map(|p| p.corners).collect::<Vec<_>>();
+        assert_eq!(corners(&built[1]), corners(index));
+        assert_eq!((&built[1].start, &built[1].items), (&index.start, &index.items));
+        assert_eq!((built[1].cell, built[1].dims, built[1].origin), (index.cell, index.dims, index.origin));
+        // Every triangle once, by its centroid's cell.
+        let mut theirs: Vec<[[f32; 3]; 3]> =
+            mesh.triangles.iter().map(|t| t.map(|i| mesh.vertices[i as usize])).collect();
+        let mut ours = corners(index);
+        let key = |c: &[[f32; 3]; 3]| c.map(|p| p.map(f32::to_bits));
+        theirs.sort_by_key(key);
+        ours.sort_by_key(key);
+        assert_eq!(ours, theirs);
+        let home: Vec<usize> =
+            index.tris.iter().map(|p| index.cell_index(index.clamped_cell_of(p.centre.map(f64::from)))).collect();
+        assert!(home.windows(2).all(|w| w[0] <= w[1]), "triangles out of cell order");
+        // Each cell's list, by the definition.
+        let cells = index.dims.iter().map(|&d| d as usize).product::<usize>();
+        let mut listed = 0;
+        for c in 0..cells {
+            let xyz = [0, 1, 2].map(|k| {
+                let below: i32 = index.dims[..k].iter().product();
+                (c as i32 / below) % index.dims[k]
+            });
+            let expected: Vec<u32> = (0..index.tris.len() as u32)
+                .filter(|&t| {
+                    let [a, b] = index.cell_range(&index.tris[t as usize].corners());
+                    (0..3).all(|k| (a[k]..=b[k]).contains(&xyz[k]))
+                })
+                .collect();
+            assert_eq!(&index.items[index.start[c] as usize..index.start[c + 1] as usize], &expected[..], "cell {c}");
+            listed += expected.len();
+        }
+        assert_eq!(listed, index.items.len());
+        assert!(index.tris.len() > 1000 && cells > 100, "{} triangles, {cells} cells", index.tris.len());
     }
 
     /// Vertex bounds spare the vertices that cannot reach the maximum or the outlier threshold and
