@@ -43,17 +43,21 @@ measure() { # rig-file label settings
   fi
   rm -rf "$tmp/out"
 }
+raised() { # rig-file rig resolution: a copy of the rig at that resolution; prints its path
+  local out="$tmp/$2-$3.toml"
+  sed "s/^resolution = 128/resolution = $3/" "$1" > "$out"
+  echo "$out"
+}
 for r in "${rigs[@]}"; do
   f="config/rigs/$r.toml"
   measure "$f" "$r" "shipped ($(grep -m1 -o 'resolution = [0-9]*' "$f" | grep -o '[0-9]*')^3)"
+  grep -q '^resolution = 128' "$f" || continue
   # The issue's wait target for space carving is stated at 256^3: its rig is measured there too.
-  if [ "$(grep -m1 -o '^method = "[a-z-]*"' "$f")" = 'method = "space-carving"' ] && grep -q '^resolution = 128' "$f"; then
-    sed 's/^resolution = 128/resolution = 256/' "$f" > "$tmp/$r-256.toml"
-    measure "$tmp/$r-256.toml" "$r" "256^3"
+  if [ "$(grep -m1 -o '^method = "[a-z-]*"' "$f")" = 'method = "space-carving"' ]; then
+    measure "$(raised "$f" "$r" 256)" "$r" "256^3"
   fi
-  if [ -n "${RSS_512-1}" ] && grep -q '^resolution = 128' "$f"; then
-    sed 's/^resolution = 128/resolution = 512/' "$f" > "$tmp/$r-512.toml"
-    line=$(measure "$tmp/$r-512.toml" "$r" "512^3")
+  if [ -n "${RSS_512-1}" ]; then
+    line=$(measure "$(raised "$f" "$r" 512)" "$r" "512^3")
     echo "$line"
     if [[ $line == *"refused: needs about"* ]] && [ -n "${BUDGET_512-}" ]; then
       budget=$BUDGET_512
