@@ -291,20 +291,29 @@ impl Volume {
 
     /// Maximum (`max`) or minimum over the 3×3×3 cube around each voxel, out-of-volume values 0:
     /// one pass per axis, each combining whole rows (along `x`), rows of a slice (along `y`) or
-    /// slices (along `z`) so that the loops run over contiguous bytes, slices in parallel.
+    /// slices (along `z`) so that the loops run over contiguous bytes, rows or slices in parallel.
+    /// Each pass writes its own buffer from the previous one (the third into the first's), so no
+    /// buffer is copied on one core.
     fn cube_filter(&self, src: &[u8], max: bool) -> Vec<u8> {
         let [nx, ny, _] = self.dims;
         let slab = nx * ny;
+        let op = |x: u8, y: u8| if max { x.max(y) } else { x.min(y) };
         // `out = op(out, row)`, or `out = op(out, 0)` for a row outside the volume.
-        let fold = |out: &mut [u8], row: Option<&[u8]>| match (row, max) {
-            (Some(r), true) => out.iter_mut().zip(r).for_each(|(o, &v)| *o = (*o).max(v)),
-            (Some(r), false) => out.iter_mut().zip(r).for_each(|(o, &v)| *o = (*o).min(v)),
-            (None, true) => {}
-            (None, false) => out.fill(0),
+        let fold = |out: &mut [u8], row: Option<&[u8]>| match row {
+            Some(r) => out.iter_mut().zip(r).for_each(|(o, &v)| *o = op(*o, v)),
+            None if max => {}
+            None => out.fill(0),
+        };
+        // `out = op(a, b, c)`, element by element (a row or slice and its two neighbours).
+        let three = |out: &mut [u8], a: &[u8], b: Option<&[u8]>, c: Option<&[u8]>| {
+            out.copy_from_slice(a);
+            fold(out, b);
+            fold(out, c);
         };
         // Along x, within each row.
-        let mut a = src.to_vec();
+        let mut a = vec![0u8; src.len()];
         a.par_chunks_mut(nx).zip(src.par_chunks(nx)).for_each(|(out, row)| {
+            out.copy_from_slice(row);
             if nx > 1 {
                 fold(&mut out[1..], Some(&row[..nx - 1]));
                 fold(&mut out[..nx - 1], Some(&row[1..]));
@@ -313,19 +322,20 @@ impl Volume {
             fold(&mut out[nx - 1..], None);
         });
         // Along y, within each slice.
-        let mut b = a.clone();
+        let mut b = vec![0u8; src.len()];
         b.par_chunks_mut(slab).zip(a.par_chunks(slab)).for_each(|(out, s)| {
             for (y, o) in out.chunks_mut(nx).enumerate() {
-                fold(o, (y > 0).then(|| &s[(y - 1) * nx..y * nx]));
-                fold(o, (y + 1 < ny).then(|| &s[(y + 1) * nx..(y + 2) * nx]));
+                let prev = (y > 0).then(|| &s[(y - 1) * nx..y * nx]);
+                let next = (y + 1 < ny).then(|| &s[(y + 1) * nx..(y + 2) * nx]);
+                three(o, &s[y * nx..(y + 1) * nx], prev, next);
             }
         });
         // Along z, across slices, into the first pass's buffer (no longer needed).
-        a.copy_from_slice(&b);
         let slices = b.len() / slab.max(1);
         a.par_chunks_mut(slab).enumerate().for_each(|(z, o)| {
-            fold(o, (z > 0).then(|| &b[(z - 1) * slab..z * slab]));
-            fold(o, (z + 1 < slices).then(|| &b[(z + 1) * slab..(z + 2) * slab]));
+            let prev = (z > 0).then(|| &b[(z - 1) * slab..z * slab]);
+            let next = (z + 1 < slices).then(|| &b[(z + 1) * slab..(z + 2) * slab]);
+            three(o, &b[z * slab..(z + 1) * slab], prev, next);
         });
         a
     }
@@ -606,16 +616,25 @@ mod tests {
 
     #[test]
     fn the_cube_filter_is_the_max_and_min_over_each_3x3x3_cube() {
-        // A scattered pattern on an uneven grid (padding included), against the cube taken voxel by
-        // voxel with out-of-volume values 0.
+        // Scattered patterns on an uneven grid (padding included), against the cube taken voxel by
+        // voxel with out-of-volume values 0: a dense one, and sparse and nearly full ones, where
+        // the maximum and the minimum of most cubes hang on a single voxel of them.
         let grid = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [0.011, 0.007, 0.005] }, 11);
-        let occ = Occupancy::from_fn(grid, |p| {
-            ((p.x * 9e3) as i64 * 7 + (p.y * 9e3) as i64 * 3 + (p.z * 9e3) as i64) % 5 < 2
-        });
-        let v = Volume::new(&occ);
-        let d = v.dims;
-        assert!(d[0] != d[1] && v.cells.contains(&1) && v.cells.contains(&0), "{d:?}");
-        for max in [true, false] {
+        let hash = |p: nalgebra::Vector3<f64>| {
+            let c = [p.x, p.y, p.z].map(|x| (x * 9e3) as i64);
+            ((c[0] * 73_856_093) ^ (c[1] * 19_349_663) ^ (c[2] * 83_492_791)).rem_euclid(23)
+        };
+        let patterns = [
+            Occupancy::from_fn(grid, |p| {
+                ((p.x * 9e3) as i64 * 7 + (p.y * 9e3) as i64 * 3 + (p.z * 9e3) as i64) % 5 < 2
+            }),
+            Occupancy::from_fn(grid, |p| hash(p) == 0),
+            Occupancy::from_fn(grid, |p| hash(p) != 0),
+        ];
+        for (occ, max) in patterns.iter().flat_map(|o| [(o, true), (o, false)]) {
+            let v = Volume::new(occ);
+            let d = v.dims;
+            assert!(d[0] != d[1] && v.cells.contains(&1) && v.cells.contains(&0), "{d:?}");
             let got = v.cube_filter(&v.cells, max);
             for k in 0..d[2] {
                 for j in 0..d[1] {
