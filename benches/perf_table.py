@@ -13,7 +13,8 @@ the figure is a throughput), the baseline or peer and its time from the same run
 The table goes between the README's `<!-- perf-table:begin -->` and `<!-- perf-table:end -->`
 markers, with the machine's core count and load averages before and after the run. The whole-scan
 rows (peak RSS, seconds after the last frame, total) come from `--scans FILE`, the lines
-`method | settings | MiB | after-last-frame s | total s` that benches/scan_figures.sh prints.
+`method | settings | MiB | after-last-frame s (median) | fastest | slowest | total s (median) | runs`
+that benches/scan_figures.sh prints.
 """
 
 import argparse
@@ -73,17 +74,21 @@ def table(rows, load_before, load_after, cores, scans):
     if scans:
         out += [
             "",
-            "Whole scans through `scanrig scan` on the simulated rigs (`benches/scan_figures.sh`, same run):",
+            "Whole scans through `scanrig scan` on the simulated rigs (`benches/scan_figures.sh`, same run; "
+            "each setting scanned the number of times shown, one after the other, the median given with the "
+            "fastest and slowest run; peak RSS is the largest of the runs):",
             "",
-            "| method | settings | peak RSS | after the last frame | whole scan |",
-            "|---|---|---|---|---|",
+            "| method | settings | peak RSS | after the last frame: median (fastest-slowest) | whole scan: median | runs |",
+            "|---|---|---|---|---|---|",
         ]
         for line in scans:
             parts = [p.strip() for p in line.split("|")]
-            if len(parts) == 5:
-                out.append(f"| {parts[0]} | {parts[1]} | {parts[2]} MiB | {parts[3]} s | {parts[4]} s |")
+            if len(parts) == 8:
+                name, settings, mib, median, fastest, slowest, total, runs = parts
+                after = f"{median} s" if runs == "1" else f"{median} s ({fastest}-{slowest})"
+                out.append(f"| {name} | {settings} | {mib} MiB | {after} | {total} s | {runs} |")
             elif len(parts) == 3:
-                out.append(f"| {parts[0]} | {parts[1]} | {parts[2]} | - | - |")
+                out.append(f"| {parts[0]} | {parts[1]} | {parts[2]} | - | - | - |")
     return "\n".join(out)
 
 
