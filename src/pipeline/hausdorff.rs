@@ -654,10 +654,20 @@ mod tests {
                 let below: i32 = index.dims[..k].iter().product();
                 (c as i32 / below) % index.dims[k]
             });
+            // A triangle reaches the cell when, on every axis, the cells of its bounding box's ends
+            // (the floor of the offset over the cell edge, clamped to the grid) hold the cell's.
             let expected: Vec<u32> = (0..index.tris.len() as u32)
                 .filter(|&t| {
-                    let [a, b] = index.cell_range(&index.tris[t as usize].corners());
-                    (0..3).all(|k| (a[k]..=b[k]).contains(&xyz[k]))
+                    let c = index.tris[t as usize].corners;
+                    (0..3).all(|k| {
+                        let cell_of = |x: f32| {
+                            let f = ((f64::from(x) - index.origin[k]) / index.cell).floor();
+                            (f as i32).clamp(0, index.dims[k] - 1)
+                        };
+                        let (lo, hi) =
+                            c.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), p| (l.min(p[k]), h.max(p[k])));
+                        (cell_of(lo)..=cell_of(hi)).contains(&xyz[k])
+                    })
                 })
                 .collect();
             assert_eq!(&index.items[index.start[c] as usize..index.start[c + 1] as usize], &expected[..], "cell {c}");
