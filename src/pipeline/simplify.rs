@@ -1254,9 +1254,11 @@ mod tests {
         let bound = 0.25 * grid.voxel_size;
         let slack = 1e-6;
         let to_mesh = TriangleIndex::new(&mesh).expect("triangles");
-        // Whole, and cut into regions simplified apart (the seams then on the whole mesh).
+        // Whole, and cut into regions simplified apart (the seams then on the whole mesh). 24 regions
+        // of about 900 triangles each (22,128 in all) stand for a large mesh cut into many boxes: far
+        // more of the vertices lie on a cut than with 2 or 5.
         let mut counts = Vec::new();
-        for regions in [1, 2, 5] {
+        for regions in [1, 2, 5, 24] {
             let (simple, stats) = simplify_in(&mesh, &SimplifyParams { max_error_m: bound }, regions);
             assert!(stats.triangles_after * 3 < stats.triangles_before * 2, "{regions}: {stats:?}");
             let to_simple = TriangleIndex::new(&simple).expect("triangles");
