@@ -582,18 +582,24 @@ impl VoxelCamera {
                 }
             }
             for &v in run {
-                let (rect, centre) = self.cover_of(v);
-                if let Some([x0, x1, y0, y1]) = rect {
-                    for y in y0..=y1 {
-                        out[y * w + x0..=y * w + x1].fill(true);
-                    }
-                }
-                if let Some((x, y)) = centre {
-                    out[y * w + x] = true;
-                }
+                self.splat(v, &mut out);
             }
         }
         (out, skipped)
+    }
+
+    /// Mark the pixels voxel `v` covers (see [`Self::covers`]) in `out` (row-major, this camera's size).
+    fn splat(&self, v: [u32; 3], out: &mut [bool]) {
+        let w = self.width;
+        let (rect, centre) = self.cover_of(v);
+        if let Some([x0, x1, y0, y1]) = rect {
+            for y in y0..=y1 {
+                out[y * w + x0..=y * w + x1].fill(true);
+            }
+        }
+        if let Some((x, y)) = centre {
+            out[y * w + x] = true;
+        }
     }
 }
 
@@ -1075,15 +1081,7 @@ mod tests {
             // Every voxel's footprint splatted, one by one.
             let mut want = vec![false; 640 * 480];
             for &v in &bricks {
-                let (rect, centre) = vc.cover_of(v);
-                if let Some([x0, x1, y0, y1]) = rect {
-                    for y in y0..=y1 {
-                        want[y * 640 + x0..=y * 640 + x1].fill(true);
-                    }
-                }
-                if let Some((x, y)) = centre {
-                    want[y * 640 + x] = true;
-                }
+                vc.splat(v, &mut want);
             }
             assert!(want.iter().filter(|&&c| c).count() > 20_000);
             let (by_bricks, skipped) = vc.cover_counting(&bricks);
