@@ -1021,13 +1021,13 @@ pub struct Simplification {
 
 /// Largest mesh, in triangles, whose half of the Hausdorff check [`simplify_within`] prepares
 /// beside the simplification. Held while the simplifier runs, it adds to the peak memory about 60
-/// bytes a triangle (52 for the packed triangle, plus its cell lists and the vertex samples): +324 MiB
-/// measured on the 512^3 cup's 5.4 million triangles, whose wait it did not shorten. Measured again
-/// with up to 1,024 regions (the pass at the cuts then leaves a core idle for about 1.4 s), on the
-/// saved mesh alone: simplification and check 6.3-6.4 s -> 5.7-6.9 s in two alternating pairs, peak
-/// RSS +570-576 MiB, so the limit stays. Below it the reference costs at most about 120 MB. It shortened the shipped 128^3 depth-fusion scan's wait, and the
-/// cup's at 256^3 (1.35 million triangles: simplification and check 2.05 s -> 1.83 s on the saved
-/// mesh, when the limit was one million).
+/// bytes a triangle (52 for the packed triangle, plus its cell lists and the vertex samples), so at
+/// most about 120 MB below this limit. It shortened the shipped 128^3 depth-fusion scan's wait, and
+/// the cup's at 256^3 (1.35 million triangles: simplification and check 2.05 s -> 1.83 s on the
+/// saved mesh, when the limit was one million). Above it, on the 512^3 cup's 5.4 million triangles
+/// with up to 1,024 regions (the pass at the cuts then leaves a core idle for about 1.4 s):
+/// simplification and check 6.3-6.4 s -> 5.7-6.9 s in two alternating pairs on the saved mesh, for
+/// +570-576 MiB of peak RSS, so the limit stays.
 const BESIDE_MAX_TRIANGLES: usize = 2_000_000;
 
 /// Most times [`simplify_within`] simplifies again after its check found samples beyond the bound.
