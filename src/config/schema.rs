@@ -1002,8 +1002,9 @@ impl Default for SilhouetteConfig {
 #[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct MeshConfig {
-    /// Box-filter the occupancy over this many voxels (radius) before marching cubes, so the mesh
-    /// is not a staircase; 0 = raw occupancy (the surface is still relaxed off the voxel stairs).
+    /// Box-filter the occupancy over this many voxels (radius) before the surface is extracted, so
+    /// the mesh is not a staircase; 0 = raw occupancy (the surface is still relaxed off the voxel
+    /// stairs).
     #[serde(default)]
     pub smooth_radius: u32,
     /// Error bound of the mesh simplification (quadric edge collapses), voxel edges: every collapse

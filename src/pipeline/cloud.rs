@@ -22,7 +22,7 @@
 //!   transform) up to a reach; beyond it, voxels the grid's outer faces (other than its floor) reach
 //!   through unlabelled voxels are outside and enclosed ones inside; small inside blobs and enclosed
 //!   outside bubbles are flipped. The inside voxels form an
-//!   [`Occupancy`] whose surface is extracted by marching tetrahedra ([`extract_surface`], closed and
+//!   [`Occupancy`] whose surface is extracted as a dual surface net ([`extract_surface`], closed and
 //!   consistently oriented); each vertex is then moved onto the zero crossing of the signed distance
 //!   by Newton steps (until the distance is within [`NEWTON_TOLERANCE_VOXELS`] of a voxel edge), for
 //!   sub-voxel accuracy.

@@ -1221,7 +1221,7 @@ mod tests {
             let mesh = mesh_of(&occ);
             let bound = 0.2 * grid.voxel_size;
             let (simple, s) = simplify_within(&mesh, bound, 20_000).expect("bound > 0");
-            assert!(s.stats.triangles_after * 3 < s.stats.triangles_before, "{name}: {s:?}");
+            assert!(s.stats.triangles_after * 2 < s.stats.triangles_before, "{name}: {s:?}");
             assert!(s.hausdorff.symmetric_m <= bound, "{name}: {s:?}");
             let topo = simple.topology();
             assert_eq!(topo.open_or_misoriented_edges, 0, "{name}");
@@ -1257,7 +1257,7 @@ mod tests {
         let slack = 1e-6;
         let to_mesh = TriangleIndex::new(&mesh).expect("triangles");
         // Whole, and cut into regions simplified apart (the seams then on the whole mesh). 24 regions
-        // of about 900 triangles each (22,128 in all) stand for a large mesh cut into many boxes: far
+        // of about 300 triangles each (7,392 in all) stand for a large mesh cut into many boxes: far
         // more of the vertices lie on a cut than with 2 or 5.
         let mut counts = Vec::new();
         for regions in [1, 2, 5, 24] {
@@ -1332,19 +1332,31 @@ mod tests {
         assert!(far.is_empty() && s.within_bound);
     }
 
-    /// A sphere with two voxels of radial noise: with the per-vertex checks alone the insides of its
-    /// simplified triangles left the bound (a sample 1.14 bounds away); with the probes a sample
-    /// still does, and a repair brings every sample within the bound both ways.
+    /// A sphere whose triangles are each split at their centroid, the centroids then moved radially
+    /// by up to a voxel either way (spikes): a sample of the first pass still leaves the bound between
+    /// the probes, and a repair brings every sample within the bound both ways. (The extracted meshes
+    /// themselves, noisy or not, left no sample beyond the bound at radial noise of 0.05 to 4 voxels
+    /// and bounds of 0.1 to 0.5 voxel.)
     #[test]
     fn triangle_insides_stay_within_the_bound_on_a_rough_surface() {
-        let (grid, mesh) = noisy_sphere(2.0);
+        let (grid, smooth) = noisy_sphere(0.0);
+        let mut mesh = TriangleMesh { vertices: smooth.vertices.clone(), triangles: Vec::new(), colors: None };
+        for t in &smooth.triangles {
+            let c = [0, 1, 2].map(|a| t.iter().map(|&v| f64::from(smooth.vertices[v as usize][a])).sum::<f64>() / 3.0);
+            let h = (mesh.vertices.len() as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
+            let noise = (h as f64 / (1u64 << 24) as f64 - 0.5) * 2.0 * grid.voxel_size;
+            let r = c.iter().map(|x| x * x).sum::<f64>().sqrt();
+            let n = mesh.vertices.len() as u32;
+            mesh.vertices.push(c.map(|x| (x * (1.0 + noise / r)) as f32));
+            mesh.triangles.extend([[t[0], t[1], n], [t[1], t[2], n], [t[2], t[0], n]]);
+        }
         let bound = 0.25 * grid.voxel_size;
         let (first, _) = simplify(&mesh, &SimplifyParams { max_error_m: bound });
         let (_, far) = hausdorff_outliers(&first, &mesh, 100_000, bound).expect("triangles");
         assert!(!far.is_empty(), "the first pass is within the bound: nothing here exercises a repair");
         let (simple, s) = simplify_within(&mesh, bound, 100_000).expect("bound > 0");
         assert!(s.within_bound && s.repairs >= 1, "{s:?}");
-        assert!(s.hausdorff.symmetric_m <= bound && s.stats.collapses > 1000, "{s:?}");
+        assert!(s.hausdorff.symmetric_m <= bound && s.stats.collapses > 500, "{s:?}");
         // The input's half of the check prepared beside the first simplification or after it: the
         // same meshes and measurements through the repairs.
         for beside in [true, false] {

@@ -6,9 +6,10 @@
 //! by changing as few voxels as it can, only voxels within one voxel of the surface, and only where
 //! the change removes a handle; every other voxel keeps its value.
 //!
-//! **Digital topology.** [`extract_surface`](super::extract_surface) meshes the occupancy by marching
-//! tetrahedra over the Kuhn (Freudenthal) triangulation of the lattice of voxel centres. Its surface
-//! therefore has the topology of the simplicial complex spanned by the occupied voxels in that
+//! **Digital topology.** [`extract_surface`](super::extract_surface) meshes the occupancy with the
+//! topology of the Kuhn (Freudenthal) triangulation of the lattice of voxel centres (its dual surface
+//! joins and separates the sheets at each critical edge and corner as that triangulation does). Its
+//! surface therefore has the topology of the simplicial complex spanned by the occupied voxels in that
 //! triangulation, whose edges join a voxel to its 14 neighbours `±v`, `v ∈ {0,1}³ \ {0}` (both the
 //! solid and the air use this 14-adjacency, which is why the pair is free of the paradoxes of
 //! 6/26-connectivity). The link of a voxel (the neighbours and the triangles among them) is a
