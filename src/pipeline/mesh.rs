@@ -407,8 +407,9 @@ fn is_active(occ: &Occupancy, cb: [usize; 3], r: i64, dims: &[i64; 3], bd: &[usi
 /// edges whose lowest cell is in the block, and a tube for each tube cell of the block. Vertices
 /// of cells outside the block are computed here as well, identically (the merge keeps one).
 fn dual_block(occ: &Occupancy, cb: [usize; 3], r: i64, dims: &[i64; 3]) -> Part {
-    let base = cb.map(|c| (c * BRICK) as i64); // first cell, first lattice point
-                                               // Lattice points of the block's cells and of the cells one beyond them.
+    // The block's first cell and first lattice point.
+    let base = cb.map(|c| (c * BRICK) as i64);
+    // Lattice points of the block's cells and of the cells one beyond them.
     let npts = [0, 1, 2].map(|a| ((dims[a] + 2) - base[a]).min(BRICK as i64 + 2) as usize);
     let own = [0, 1, 2].map(|a| ((dims[a] + 1) - base[a]).min(BRICK as i64) as usize);
     // Raw occupancy over voxels [base-1-r, base-1+npts-1+r].
@@ -515,7 +516,10 @@ fn dual_block(occ: &Occupancy, cb: [usize; 3], r: i64, dims: &[i64; 3]) -> Part 
                     let (in_pt, out_pt) = if low_inside { (q, q1) } else { (q1, q) };
                     poly.clear();
                     let (mut first_mid, mut first_tube) = (None, None);
+                    // Where each cell's vertices start in the polygon.
+                    let mut starts = [0usize; 4];
                     for i in 0..4 {
+                        starts[i] = poly.len();
                         let (c, prev, next) = (cells[i], cells[(i + 3) % 4], cells[(i + 1) % 4]);
                         let mask = masks[cell_at(c)];
                         if is_tube(mask) {
@@ -553,7 +557,7 @@ fn dual_block(occ: &Occupancy, cb: [usize; 3], r: i64, dims: &[i64; 3]) -> Part 
                     let n = poly.len();
                     let from = match (first_mid, first_tube) {
                         (Some(f), _) => f,
-                        (None, Some(t)) => (2 * t + 2) % n,
+                        (None, Some(t)) => starts[(t + 2) % 4],
                         (None, None) => 0,
                     };
                     for t in 1..n - 1 {
