@@ -926,6 +926,75 @@ mod tests {
         assert_eq!(joined_count, 8);
     }
 
+    /// The Euler characteristic of the Kuhn complex spanned by the inside lattice points: its
+    /// vertices, edges, triangles and tetrahedra are the chains `0 ⊂ a ⊂ b ⊂ c` of offset bit masks
+    /// from a point (7 edge, 12 triangle and 6 tetrahedron kinds), counted where all their points are
+    /// inside. The points are those of `occ` box-smoothed over `(2r+1)³` voxels, the padding empty.
+    fn kuhn_euler(occ: &Occupancy, r: i64) -> i64 {
+        let d = occ.grid().dims.map(|x| x as i64);
+        let w = (2 * r + 1).pow(3);
+        let inside = |p: [i64; 3]| {
+            let mut n = 0;
+            for z in -r..=r {
+                for y in -r..=r {
+                    for x in -r..=r {
+                        n += i64::from(occ.get_signed(p[0] - 1 + x, p[1] - 1 + y, p[2] - 1 + z));
+                    }
+                }
+            }
+            2 * n > w
+        };
+        let at = |p: [i64; 3], m: usize| [0, 1, 2].map(|k| p[k] + ((m >> k) & 1) as i64);
+        let subset = |a: usize, b: usize| a != b && a & b == a;
+        let mut euler = 0;
+        for z in 0..d[2] + 2 {
+            for y in 0..d[1] + 2 {
+                for x in 0..d[0] + 2 {
+                    let p = [x, y, z];
+                    if !inside(p) {
+                        continue;
+                    }
+                    euler += 1;
+                    for a in 1..8 {
+                        if !inside(at(p, a)) {
+                            continue;
+                        }
+                        euler -= 1;
+                        for b in (1..8).filter(|&b| subset(a, b) && inside(at(p, b))) {
+                            euler += 1;
+                            euler -= (1..8).filter(|&c| subset(b, c) && inside(at(p, c))).count() as i64;
+                        }
+                    }
+                }
+            }
+        }
+        euler
+    }
+
+    /// On scattered voxels (half of them occupied, so every kind of critical edge and tube cell
+    /// occurs), raw and box-smoothed, the surface is closed and oriented and bounds the Kuhn complex
+    /// of the inside points: its Euler characteristic is twice the complex's, counted independently.
+    #[test]
+    fn the_surface_bounds_the_kuhn_complex_of_scattered_voxels() {
+        let grid = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [0.012; 3] }, 12);
+        for seed in 0..4u64 {
+            let occ = Occupancy::from_index_fn(grid, |i, j, k| {
+                // SplitMix64's finaliser: neighbouring voxels independent.
+                let mut h = ((i + 12 * j + 144 * k) as u64 + 1000 * seed).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+                h = (h ^ (h >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+                h = (h ^ (h >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+                (h ^ (h >> 31)) >> 63 == 1
+            });
+            for r in [0u32, 1] {
+                let params = MeshParams { smooth_radius: r, remove_handles: false, ..MeshParams::smoothed(r) };
+                let topo = extract_surface(&occ, &params).expect("mesh").topology();
+                assert_eq!(topo.open_or_misoriented_edges, 0, "seed {seed}, radius {r}");
+                let complex = kuhn_euler(&occ, r as i64);
+                assert_eq!(topo.euler_characteristic, 2 * complex, "seed {seed}, radius {r}: {topo:?}");
+            }
+        }
+    }
+
     #[test]
     fn object_touching_the_grid_border_is_closed_by_the_padding() {
         let g = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [1.0; 3] }, 19);
