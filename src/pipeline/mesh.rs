@@ -43,6 +43,7 @@
 use std::collections::HashMap;
 use std::sync::OnceLock;
 
+use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::occupancy::{Brick, Occupancy, BRICK};
@@ -573,17 +574,11 @@ fn dual_block(occ: &Occupancy, cb: [usize; 3], r: i64, dims: &[i64; 3]) -> Part 
                     let solid = mask == 0x81;
                     for i in 0..6 {
                         let k = [hex[i], hex[(i + 1) % 6], hex[(i + 2) % 6]];
-                        let p = k.map(kind_offset);
-                        let (e1, e2) = (sub3(p[1], p[0]), sub3(p[2], p[0]));
-                        let nrm = [
-                            e1[1] * e2[2] - e1[2] * e2[1],
-                            e1[2] * e2[0] - e1[0] * e2[2],
-                            e1[0] * e2[1] - e1[1] * e2[0],
-                        ];
+                        let p = k.map(|kind| Vector3::from(kind_offset(kind)));
+                        let normal = (p[1] - p[0]).cross(&(p[2] - p[0]));
                         // Away from the diagonal for a solid tube, towards it for an air tube.
-                        let m = [0, 1, 2].map(|a| (p[0][a] + p[1][a] + p[2][a]) / 3.0);
-                        let along = (m[0] + m[1] + m[2]) / 3.0;
-                        let out: f32 = (0..3).map(|a| nrm[a] * (m[a] - along)).sum();
+                        let m = (p[0] + p[1] + p[2]) / 3.0;
+                        let out = normal.dot(&(m - Vector3::repeat(m.sum() / 3.0)));
                         let ids = k.map(|kind| vertex(l, kind));
                         if (out > 0.0) == solid {
                             tris.push(ids);
@@ -596,10 +591,6 @@ fn dual_block(occ: &Occupancy, cb: [usize; 3], r: i64, dims: &[i64; 3]) -> Part 
         }
     }
     (verts, tris)
-}
-
-fn sub3(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
 /// Box sum of width `w` along `axis` over an `ext` volume; the result is `w - 1` shorter on that axis.
@@ -786,6 +777,7 @@ pub fn keep_main_component(mesh: &TriangleMesh) -> (TriangleMesh, MeshCleanStats
 mod tests {
     use super::*;
     use crate::geometry::{Aabb, VoxelGrid};
+    use crate::sim::rng::mix;
     use nalgebra::Vector3;
 
     fn sphere(n: u32, radius: f64) -> Occupancy {
@@ -979,11 +971,9 @@ mod tests {
         let grid = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [0.012; 3] }, 12);
         for seed in 0..4u64 {
             let occ = Occupancy::from_index_fn(grid, |i, j, k| {
-                // SplitMix64's finaliser: neighbouring voxels independent.
-                let mut h = ((i + 12 * j + 144 * k) as u64 + 1000 * seed).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-                h = (h ^ (h >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-                h = (h ^ (h >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-                (h ^ (h >> 31)) >> 63 == 1
+                // Mixed so that neighbouring voxels are independent.
+                let index = (i + 12 * j + 144 * k) as u64 + 1000 * seed;
+                mix(index.wrapping_mul(0x9E37_79B9_7F4A_7C15)) >> 63 == 1
             });
             for r in [0u32, 1] {
                 let params = MeshParams { smooth_radius: r, remove_handles: false, ..MeshParams::smoothed(r) };

@@ -1240,12 +1240,18 @@ mod tests {
         let grid = VoxelGrid::from_resolution(&Aabb { min: [-1.0; 3], max: [1.0; 3] }, 40);
         let mut mesh = mesh_of(&Occupancy::from_fn(grid, |p| p.norm() < 0.7));
         for (i, v) in mesh.vertices.iter_mut().enumerate() {
-            let h = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
-            let noise = (h as f64 / (1u64 << 24) as f64 - 0.5) * voxels * grid.voxel_size;
-            let r = v.iter().map(|&x| f64::from(x).powi(2)).sum::<f64>().sqrt();
-            *v = v.map(|x| (f64::from(x) * (1.0 + noise / r)) as f32);
+            *v = moved_radially(v.map(f64::from), i, voxels * grid.voxel_size);
         }
         (grid, mesh)
+    }
+
+    /// `p` (metres) moved away from the origin by deterministic noise of the point's `index`, within
+    /// `span_m / 2` either way.
+    fn moved_radially(p: [f64; 3], index: usize, span_m: f64) -> [f32; 3] {
+        let h = (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
+        let noise = (h as f64 / (1u64 << 24) as f64 - 0.5) * span_m;
+        let r = p.iter().map(|x| x * x).sum::<f64>().sqrt();
+        p.map(|x| (x * (1.0 + noise / r)) as f32)
     }
 
     /// Every vertex of either mesh lies within the bound of the other surface, exactly (not sampled),
@@ -1343,11 +1349,8 @@ mod tests {
         let mut mesh = TriangleMesh { vertices: smooth.vertices.clone(), triangles: Vec::new(), colors: None };
         for t in &smooth.triangles {
             let c = [0, 1, 2].map(|a| t.iter().map(|&v| f64::from(smooth.vertices[v as usize][a])).sum::<f64>() / 3.0);
-            let h = (mesh.vertices.len() as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
-            let noise = (h as f64 / (1u64 << 24) as f64 - 0.5) * 2.0 * grid.voxel_size;
-            let r = c.iter().map(|x| x * x).sum::<f64>().sqrt();
             let n = mesh.vertices.len() as u32;
-            mesh.vertices.push(c.map(|x| (x * (1.0 + noise / r)) as f32));
+            mesh.vertices.push(moved_radially(c, n as usize, 2.0 * grid.voxel_size));
             mesh.triangles.extend([[t[0], t[1], n], [t[1], t[2], n], [t[2], t[0], n]]);
         }
         let bound = 0.25 * grid.voxel_size;
