@@ -42,12 +42,13 @@
 
 use std::collections::HashMap;
 use std::sync::OnceLock;
+use std::time::Instant;
 
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::occupancy::{Brick, Occupancy, BRICK};
-use super::topology::{remove_small_handles, HandleRepair};
+use super::topology::{kuhn_euler_characteristic, remove_small_handles, HandleRepair};
 
 /// Parameters of [`extract_surface`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -148,6 +149,9 @@ pub enum MeshError {
 /// Output of one cell block: unique vertices as (edge key, lattice position), triangles as local indices.
 type Part = (Vec<(u64, [f32; 3])>, Vec<[u32; 3]>);
 
+/// A cell block (its index along each axis) and its [`Part`].
+type BlockPart = ([usize; 3], Part);
+
 /// Extract the surface of `occupancy` (see the module docs).
 pub fn extract_surface(occupancy: &Occupancy, params: &MeshParams) -> Result<TriangleMesh, MeshError> {
     extract_surface_reporting(occupancy, params).map(|(mesh, _)| mesh)
@@ -166,21 +170,71 @@ pub fn extract_surface_reporting(
     if !params.remove_handles {
         return extract(occupancy, params).map(|mesh| (mesh, None));
     }
+    // Unsmoothed, the surface has the topology of the Kuhn complex the repair works in, whose Euler
+    // characteristic is the surface's components less its handles: one that is not positive means
+    // a handle, and the repair comes first. Otherwise the surface is extracted and its genus counted
+    // (before the relaxation, which moves vertices only). At genus zero the repair would return the
+    // occupancy unchanged, so that mesh is the answer; so it is when the repair removes nothing;
+    // else only the cell blocks near voxels the repair changed are extracted again.
+    let unsmoothed = if params.smooth_radius == 0 && kuhn_euler_characteristic(occupancy) > 0 {
+        let parts = block_parts(occupancy, 0, None);
+        let merged = merge(&parts)?;
+        let t = Instant::now();
+        if closed_surface_genus(&merged.0) == Some(0) {
+            let stats = HandleRepair { seconds: t.elapsed().as_secs_f64(), ..HandleRepair::default() };
+            return Ok((finish(occupancy, params, merged), Some(stats)));
+        }
+        Some((parts, merged))
+    } else {
+        None
+    };
     let (repaired, stats) = remove_small_handles(occupancy);
     if stats.handles_removed() > 0 {
         tracing::info!(?stats, "voxel-scale handles removed before meshing");
     }
-    extract(&repaired, params).map(|mesh| (mesh, Some(stats)))
+    let mesh = match unsmoothed {
+        Some((_, merged)) if stats.handles_removed() == 0 => finish(occupancy, params, merged),
+        Some((parts, _)) => {
+            let parts = block_parts(&repaired, 0, Some((occupancy, parts)));
+            finish(&repaired, params, merge(&parts)?)
+        }
+        None => extract(&repaired, params)?,
+    };
+    Ok((mesh, Some(stats)))
+}
+
+/// The genus summed over the components of a closed mesh (every edge shared by two triangles, as
+/// [`extract_surface`] makes it): each component's Euler characteristic is `2 - 2 genus`, and with
+/// `3/2` edges per triangle `V - E + F = V - F/2` over all of them, so `4 genus = 4 components -
+/// 2 V + F`. `None` when that is not a multiple of four (the mesh cannot be closed).
+fn closed_surface_genus(mesh: &TriangleMesh) -> Option<i64> {
+    let (_, parts) = components(mesh);
+    let mut used = vec![false; mesh.vertices.len()];
+    for t in &mesh.triangles {
+        for &v in t {
+            used[v as usize] = true;
+        }
+    }
+    let vertices = used.iter().filter(|&&u| u).count() as i64;
+    let four = 4 * parts.len() as i64 - 2 * vertices + mesh.triangles.len() as i64;
+    (four % 4 == 0).then_some(four / 4)
 }
 
 /// Dual extraction and relaxation over `occupancy` as it is (`smooth_radius` already checked by
 /// the caller).
 fn extract(occupancy: &Occupancy, params: &MeshParams) -> Result<TriangleMesh, MeshError> {
-    let r = params.smooth_radius;
+    let parts = block_parts(occupancy, params.smooth_radius as i64, None);
+    Ok(finish(occupancy, params, merge(&parts)?))
+}
+
+/// The active cell blocks of `occupancy` (z, then y, then x order) with their parts
+/// ([`dual_block`], smoothing radius `r`). With `before`, an occupancy on the same grid and its
+/// parts, a block whose voxels (its cells' lattice points, `r` voxels beyond) lie in bricks equal
+/// in both keeps its part from before.
+fn block_parts(occupancy: &Occupancy, r: i64, before: Option<(&Occupancy, Vec<BlockPart>)>) -> Vec<BlockPart> {
     if occupancy.grid().is_empty() {
-        return Ok(TriangleMesh::default());
+        return Vec::new();
     }
-    let r = r as i64;
     let dims = occupancy.grid().dims.map(|d| d as i64);
     // Lattice points p in [0, D+2) per axis (point p is voxel p-1); cells c in [0, D+1).
     let cell_blocks = dims.map(|d| ((d + 1) as usize).div_ceil(BRICK));
@@ -195,38 +249,69 @@ fn extract(occupancy: &Occupancy, params: &MeshParams) -> Result<TriangleMesh, M
             }
         }
     }
-    let parts: Vec<Part> = active.par_iter().map(|cb| dual_block(occupancy, *cb, r, &dims)).collect();
+    // Block `cb` reads voxels [8 cb - 1 - r, 8 cb + 8 + r]: those of bricks cb - 1 - reach .. cb + 1 + reach.
+    let reach = (r as usize).div_ceil(BRICK);
+    let mut kept: HashMap<[usize; 3], Part> = match before {
+        None => HashMap::new(),
+        Some((old, parts)) => {
+            let changed = |c: [usize; 3]| {
+                let lo = c.map(|x| x.saturating_sub(1 + reach));
+                let hi = [0, 1, 2].map(|a| (c[a] + 1 + reach).min(bd[a] - 1));
+                (lo[2]..=hi[2]).any(|z| {
+                    (lo[1]..=hi[1]).any(|y| (lo[0]..=hi[0]).any(|x| occupancy.brick(x, y, z) != old.brick(x, y, z)))
+                })
+            };
+            parts.into_iter().filter(|(cb, _)| !changed(*cb)).collect()
+        }
+    };
+    let mut parts: Vec<([usize; 3], Option<Part>)> = active.into_iter().map(|cb| (cb, kept.remove(&cb))).collect();
+    parts
+        .par_iter_mut()
+        .filter(|(_, p)| p.is_none())
+        .for_each(|(cb, p)| *p = Some(dual_block(occupancy, *cb, r, &dims)));
+    parts.into_iter().map(|(cb, p)| (cb, p.unwrap_or_default())).collect()
+}
+
+/// The blocks' parts (in their order) merged into one mesh, positions in lattice units, with each
+/// vertex's key (increasing).
+fn merge(parts: &[BlockPart]) -> Result<(TriangleMesh, Vec<u64>), MeshError> {
     // Merge vertices shared between blocks by their key (each block's vertices are already unique).
-    let mut keys: Vec<u64> = parts.iter().flat_map(|p| p.0.iter().map(|v| v.0)).collect();
+    let mut keys: Vec<u64> = parts.iter().flat_map(|p| p.1 .0.iter().map(|v| v.0)).collect();
     keys.par_sort_unstable();
     keys.dedup();
     if keys.len() > u32::MAX as usize {
         return Err(MeshError::TooLarge { vertices: keys.len() });
     }
-    let grid = occupancy.grid();
-    let s = grid.voxel_size;
-    // Lattice positions first (relaxed there), metres at the end.
     let mut lattice = vec![[0f32; 3]; keys.len()];
-    let mut triangles = Vec::with_capacity(parts.iter().map(|p| p.1.len()).sum());
+    let mut triangles = Vec::with_capacity(parts.iter().map(|p| p.1 .1.len()).sum());
     // Each block's vertices found among the keys side by side; the positions and triangles are
     // then gathered in block order.
     let globals: Vec<Vec<u32>> = parts
         .par_iter()
-        .map(|(verts, _)| verts.iter().map(|(k, _)| keys.binary_search(k).unwrap_or(0) as u32).collect())
+        .map(|(_, (verts, _))| verts.iter().map(|(k, _)| keys.binary_search(k).unwrap_or(0) as u32).collect())
         .collect();
-    for ((verts, tris), global) in parts.iter().zip(&globals) {
+    for ((_, (verts, tris)), global) in parts.iter().zip(&globals) {
         for ((_, p), &g) in verts.iter().zip(global) {
             lattice[g as usize] = *p;
         }
         triangles.extend(tris.iter().map(|t| t.map(|i| global[i as usize])));
     }
+    Ok((TriangleMesh { vertices: lattice, triangles, colors: None }, keys))
+}
+
+/// A [`merge`]d mesh of `occupancy`'s parts relaxed (`params`) and placed in metres.
+fn finish(occupancy: &Occupancy, params: &MeshParams, (mut mesh, keys): (TriangleMesh, Vec<u64>)) -> TriangleMesh {
+    let grid = occupancy.grid();
+    let dims = grid.dims.map(|d| d as u64);
     if params.relax_iterations > 0 {
-        let pitch = [1u64, (dims[0] + 2) as u64, ((dims[0] + 2) * (dims[1] + 2)) as u64];
-        relax_in_cells(&mut lattice, &keys, pitch, &triangles, params.relax_iterations);
+        let pitch = [1, dims[0] + 2, (dims[0] + 2) * (dims[1] + 2)];
+        relax_in_cells(&mut mesh.vertices, &keys, pitch, &mesh.triangles, params.relax_iterations);
     }
-    let vertices =
-        lattice.iter().map(|p| [0, 1, 2].map(|a| (grid.origin[a] + (p[a] as f64 - 0.5) * s) as f32)).collect();
-    Ok(TriangleMesh { vertices, triangles, colors: None })
+    let s = grid.voxel_size;
+    for p in &mut mesh.vertices {
+        *p = [0, 1, 2].map(|a| (grid.origin[a] + (p[a] as f64 - 0.5) * s) as f32);
+    }
+    mesh
 }
 
 /// Vertex kinds in the low five bits of a vertex key (the cell's lattice index above them): a fan of
@@ -819,6 +904,85 @@ mod tests {
         assert_eq!(closed.topology().components, 1);
     }
 
+    /// The handle repair is skipped exactly when the unsmoothed surface has genus zero or the repair
+    /// removes nothing, and the mesh is then the one the repair path gives.
+    #[test]
+    fn the_handle_repair_runs_only_on_a_surface_with_handles() {
+        let g = VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [0.032; 3] }, 32);
+        let at = |i: usize, j: usize, k: usize| [i, j, k].map(|x| x as f64 + 0.5);
+        // A ball with a cavity: two surfaces, genus zero.
+        let hollow = Occupancy::from_index_fn(g, |i, j, k| {
+            let r = at(i, j, k).iter().map(|x| (x - 16.0).powi(2)).sum::<f64>().sqrt();
+            r < 12.0 && r > 5.0
+        });
+        // Small cubes in the eight corners, beside the solids below so that the characteristic of
+        // a solid with a handle is positive: the mesh is extracted before the repair.
+        let cubes = |i: usize, j: usize, k: usize| [i, j, k].iter().all(|x| (1..4).contains(x) || (28..31).contains(x));
+        // A ring with a wide hole and a thick bar: a real handle the repair keeps.
+        let ring = |i, j, k| {
+            let p = at(i, j, k);
+            let q = ((p[0] - 16.0).hypot(p[1] - 16.0) - 10.0).hypot(p[2] - 16.0);
+            q < 4.0
+        };
+        // A slab pierced by a one-voxel tunnel: a handle the repair plugs.
+        let pierced =
+            |i, j, k| (4..28).contains(&i) && (4..28).contains(&j) && (14..17).contains(&k) && !(i == 16 && j == 16);
+        let alone_and_beside = |f: &(dyn Fn(usize, usize, usize) -> bool + Sync)| {
+            [Occupancy::from_index_fn(g, f), Occupancy::from_index_fn(g, |i, j, k| f(i, j, k) || cubes(i, j, k))]
+        };
+        let [ring, ring_beside] = alone_and_beside(&ring);
+        let [pierced, pierced_beside] = alone_and_beside(&pierced);
+        let params = MeshParams::smoothed(0);
+        let mut genus = Vec::new();
+        let solids = [
+            ("hollow", &hollow),
+            ("ring", &ring),
+            ("pierced", &pierced),
+            ("ring beside cubes", &ring_beside),
+            ("pierced beside cubes", &pierced_beside),
+        ];
+        for (name, occ) in solids {
+            let plain = extract(occ, &params).expect("mesh");
+            let (mesh, stats) = extract_surface_reporting(occ, &params).expect("mesh");
+            let stats = stats.expect("repair on");
+            let (repaired, by_repair) = remove_small_handles(occ);
+            let expected = extract(&repaired, &params).expect("mesh");
+            assert_eq!(
+                (mesh.vertices.len(), mesh.triangles.len()),
+                (expected.vertices.len(), expected.triangles.len()),
+                "{name}"
+            );
+            assert!(mesh.vertices == expected.vertices && mesh.triangles == expected.triangles, "{name}");
+            assert_eq!(stats.handles_removed(), by_repair.handles_removed(), "{name}");
+            genus.push((
+                kuhn_euler_characteristic(occ),
+                closed_surface_genus(&plain),
+                closed_surface_genus(&mesh),
+                stats.handles_removed(),
+            ));
+            // The count agrees with the Euler characteristic of one closed component.
+            let t = mesh.topology();
+            if t.components == 1 {
+                assert_eq!(t.genus, closed_surface_genus(&mesh), "{name}");
+            }
+        }
+        let expected = [
+            (2, Some(0), Some(0), 0),
+            (0, Some(1), Some(1), 0),
+            (0, Some(1), Some(0), 1),
+            (8, Some(1), Some(1), 0),
+            (8, Some(1), Some(0), 1),
+        ];
+        assert_eq!(genus, expected);
+        // A mesh that cannot be closed has no genus.
+        let lone = TriangleMesh {
+            vertices: vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+            triangles: vec![[0, 1, 2]],
+            colors: None,
+        };
+        assert_eq!(closed_surface_genus(&lone), None);
+    }
+
     #[test]
     fn sphere_mesh_is_closed_oriented_and_has_the_right_volume() {
         for r in [0, 1, 2] {
@@ -981,6 +1145,9 @@ mod tests {
                 assert_eq!(topo.open_or_misoriented_edges, 0, "seed {seed}, radius {r}");
                 let complex = kuhn_euler(&occ, r as i64);
                 assert_eq!(topo.euler_characteristic, 2 * complex, "seed {seed}, radius {r}: {topo:?}");
+                if r == 0 {
+                    assert_eq!(kuhn_euler_characteristic(&occ), complex, "seed {seed}");
+                }
             }
         }
     }

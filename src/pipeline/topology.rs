@@ -53,7 +53,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::occupancy::Occupancy;
+use super::occupancy::{Brick, Occupancy, BRICK};
 
 /// Fill-and-cut rounds of [`remove_small_handles`] at most.
 const MAX_ROUNDS: usize = 3;
@@ -146,6 +146,78 @@ fn remove_small_handles_with(occupancy: &Occupancy, label_after: Option<usize>) 
     };
     stats.seconds = t.elapsed().as_secs_f64();
     (out, stats)
+}
+
+/// The Euler characteristic of the Kuhn complex spanned by the occupied voxels (module docs), the
+/// alternating count of its vertices, edges, triangles and tetrahedra. Each simplex is counted at
+/// its lowest voxel `v`: its other voxels are `v + a`, `v + b`, ... for a chain `a < b < ...` of
+/// offsets in `{0,1}³ \ {0}` ordered by inclusion. An occupied voxel whose seven forward neighbours
+/// are all occupied contributes `1 - 7 + 12 - 6 = 0`, so only bricks that hold empty voxels or
+/// border such bricks are visited: the cost follows the surface. The closed surface of the complex
+/// has twice this characteristic; with its components (the solid's parts and cavities) it gives the
+/// handles: `genus = components - characteristic`.
+pub(crate) fn kuhn_euler_characteristic(occ: &Occupancy) -> i64 {
+    // Per mask of occupied forward neighbours (bit n - 1 for offset n, bit a of n set: +1 along
+    // axis a), the occupied voxel's count.
+    let table: [i8; 128] = std::array::from_fn(|m| {
+        let has = |n: usize| m >> (n - 1) & 1 == 1;
+        let within = |a: usize, b: usize| a != b && a & b == a;
+        let edges = (1..8).filter(|&n| has(n)).count() as i8;
+        let triangles =
+            (1..8).flat_map(|a| (1..8).map(move |b| (a, b))).filter(|&(a, b)| within(a, b) && has(a) && has(b)).count()
+                as i8;
+        let tetrahedra = [1, 2, 4]
+            .into_iter()
+            .flat_map(|a| [3, 5, 6].into_iter().map(move |b| (a, b)))
+            .filter(|&(a, b)| within(a, b) && has(a) && has(b) && has(7))
+            .count() as i8;
+        1 - edges + triangles - tetrahedra
+    });
+    let bd = occ.brick_dims();
+    let dims = occ.grid().dims;
+    let full = |c: [usize; 3]| c.iter().zip(&bd).all(|(x, n)| x < n) && occ.brick(c[0], c[1], c[2]) == Brick::Full;
+    (0..bd[0] * bd[1] * bd[2])
+        .into_par_iter()
+        .map(|b| {
+            let c = [b % bd[0], b / bd[0] % bd[1], b / (bd[0] * bd[1])];
+            match occ.brick(c[0], c[1], c[2]) {
+                Brick::Empty => return 0,
+                // A full brick's voxels all have their forward neighbours when the seven bricks
+                // ahead of it are full too.
+                Brick::Full if (1..8).all(|n| full([0, 1, 2].map(|a| c[a] + (n >> a & 1)))) => return 0,
+                _ => {}
+            }
+            // The brick and one voxel beyond it along each axis.
+            const W: usize = BRICK + 1;
+            let base = c.map(|x| x * BRICK);
+            let mut local = [false; W * W * W];
+            for z in 0..W {
+                for y in 0..W {
+                    for x in 0..W {
+                        let v = [base[0] + x, base[1] + y, base[2] + z];
+                        local[x + W * (y + W * z)] = (0..3).all(|a| v[a] < dims[a]) && occ.get(v[0], v[1], v[2]);
+                    }
+                }
+            }
+            let mut sum = 0i64;
+            for z in 0..BRICK {
+                for y in 0..BRICK {
+                    for x in 0..BRICK {
+                        let i = x + W * (y + W * z);
+                        if !local[i] {
+                            continue;
+                        }
+                        let mask = (1..8).fold(0usize, |m, n| {
+                            let o = (n & 1) + W * ((n >> 1 & 1) + W * (n >> 2 & 1));
+                            m | usize::from(local[i + o]) << (n - 1)
+                        });
+                        sum += i64::from(table[mask]);
+                    }
+                }
+            }
+            sum
+        })
+        .sum()
 }
 
 /// The 14 lattice neighbours of the Kuhn triangulation, as offsets.
