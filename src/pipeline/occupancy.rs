@@ -376,22 +376,54 @@ impl Occupancy {
         }
     }
 
-    /// Indices of the occupied voxels that have at least one empty (or out-of-grid) face neighbour.
+    /// Indices of the occupied voxels that have at least one empty (or out-of-grid) face neighbour,
+    /// in [`Occupancy::for_each_occupied`]'s order. Bricks are looked at side by side; an empty one,
+    /// and a full one whose six face neighbours are full bricks of the grid, hold none.
     pub fn boundary_voxels(&self) -> Vec<[u32; 3]> {
-        let mut out = Vec::new();
-        self.for_each_occupied(|i, j, k| {
-            let (a, b, c) = (i as i64, j as i64, k as i64);
-            let interior = self.get_signed(a - 1, b, c)
-                && self.get_signed(a + 1, b, c)
-                && self.get_signed(a, b - 1, c)
-                && self.get_signed(a, b + 1, c)
-                && self.get_signed(a, b, c - 1)
-                && self.get_signed(a, b, c + 1);
-            if !interior {
-                out.push([i as u32, j as u32, k as u32]);
+        let bd = self.brick_dims();
+        let full = |c: [usize; 3], a: usize, up: bool| {
+            let mut n = c;
+            if up {
+                n[a] += 1;
+            } else if n[a] == 0 {
+                return false;
+            } else {
+                n[a] -= 1;
             }
-        });
-        out
+            n[a] < bd[a] && self.brick(n[0], n[1], n[2]) == Brick::Full
+        };
+        let per_brick: Vec<Vec<[u32; 3]>> = (0..bd[0] * bd[1] * bd[2])
+            .into_par_iter()
+            .map(|b| {
+                let c = [b % bd[0], b / bd[0] % bd[1], b / (bd[0] * bd[1])];
+                match self.brick(c[0], c[1], c[2]) {
+                    Brick::Empty => return Vec::new(),
+                    Brick::Full if (0..3).all(|a| full(c, a, false) && full(c, a, true)) => return Vec::new(),
+                    _ => {}
+                }
+                let mut out = Vec::new();
+                for (z, &w) in self.brick_bits(c).iter().enumerate() {
+                    let mut w = w;
+                    while w != 0 {
+                        let bit = w.trailing_zeros() as usize;
+                        w &= w - 1;
+                        let v = [c[0] * BRICK + (bit & 7), c[1] * BRICK + (bit >> 3), c[2] * BRICK + z];
+                        let (a, b, k) = (v[0] as i64, v[1] as i64, v[2] as i64);
+                        let interior = self.get_signed(a - 1, b, k)
+                            && self.get_signed(a + 1, b, k)
+                            && self.get_signed(a, b - 1, k)
+                            && self.get_signed(a, b + 1, k)
+                            && self.get_signed(a, b, k - 1)
+                            && self.get_signed(a, b, k + 1);
+                        if !interior {
+                            out.push(v.map(|x| x as u32));
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
+        per_brick.concat()
     }
 
     /// True when both occupancies are on the same grid and hold exactly the same voxels.
@@ -503,6 +535,37 @@ mod tests {
 
     fn grid(n: u32) -> VoxelGrid {
         VoxelGrid::from_resolution(&Aabb { min: [0.0; 3], max: [1.0, 0.7, 0.45] }, n)
+    }
+
+    /// The boundary voxels are those with an empty or out-of-grid face neighbour, in
+    /// `for_each_occupied` order, whether their bricks are full, mixed or at the grid's edge.
+    #[test]
+    fn boundary_voxels_are_the_occupied_ones_beside_air_in_visiting_order() {
+        let g = grid(37);
+        // A slab through the grid's height (full bricks with full bricks on every side, and full
+        // bricks at the grid's edge), a cylinder and scattered voxels.
+        let occ = Occupancy::from_index_fn(g, |i, j, k| {
+            (i < 30 && j < 24) || (i + 2 * j + 3 * k) % 11 == 0 || (i as f64 - 20.0).hypot(j as f64 - 10.0) < 3.0
+        });
+        let mut expected = Vec::new();
+        occ.for_each_occupied(|i, j, k| {
+            let (a, b, c) = (i as i64, j as i64, k as i64);
+            let near = [(1, 0, 0), (0, 1, 0), (0, 0, 1)]
+                .iter()
+                .any(|&(x, y, z)| !occ.get_signed(a - x, b - y, c - z) || !occ.get_signed(a + x, b + y, c + z));
+            if near {
+                expected.push([i as u32, j as u32, k as u32]);
+            }
+        });
+        let enclosed = |c: [usize; 3]| {
+            let full = |d: [i64; 3]| {
+                let n = [0, 1, 2].map(|a| c[a] as i64 + d[a]);
+                n.iter().all(|&x| x >= 0) && occ.brick(n[0] as usize, n[1] as usize, n[2] as usize) == Brick::Full
+            };
+            full([0, 0, 0]) && [[1, 0, 0], [0, 1, 0], [0, 0, 1]].iter().all(|d| full(*d) && full(d.map(|x: i64| -x)))
+        };
+        assert!(enclosed([1, 1, 1]), "a full brick among full bricks");
+        assert_eq!(occ.boundary_voxels(), expected);
     }
 
     #[test]
