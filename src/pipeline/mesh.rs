@@ -254,14 +254,21 @@ fn block_parts(occupancy: &Occupancy, r: i64, before: Option<(&Occupancy, Vec<Bl
     let mut kept: HashMap<[usize; 3], Part> = match before {
         None => HashMap::new(),
         Some((old, parts)) => {
-            let changed = |c: [usize; 3]| {
+            // Each brick compared once.
+            let changed: Vec<bool> = (0..bd[0] * bd[1] * bd[2])
+                .into_par_iter()
+                .map(|b| {
+                    let c = [b % bd[0], b / bd[0] % bd[1], b / (bd[0] * bd[1])];
+                    occupancy.brick(c[0], c[1], c[2]) != old.brick(c[0], c[1], c[2])
+                })
+                .collect();
+            let near_change = |c: [usize; 3]| {
                 let lo = c.map(|x| x.saturating_sub(1 + reach));
                 let hi = [0, 1, 2].map(|a| (c[a] + 1 + reach).min(bd[a] - 1));
-                (lo[2]..=hi[2]).any(|z| {
-                    (lo[1]..=hi[1]).any(|y| (lo[0]..=hi[0]).any(|x| occupancy.brick(x, y, z) != old.brick(x, y, z)))
-                })
+                (lo[2]..=hi[2])
+                    .any(|z| (lo[1]..=hi[1]).any(|y| (lo[0]..=hi[0]).any(|x| changed[x + bd[0] * (y + bd[1] * z)])))
             };
-            parts.into_iter().filter(|(cb, _)| !changed(*cb)).collect()
+            parts.into_iter().filter(|(cb, _)| !near_change(*cb)).collect()
         }
     };
     let mut parts: Vec<([usize; 3], Option<Part>)> = active.into_iter().map(|cb| (cb, kept.remove(&cb))).collect();

@@ -174,7 +174,6 @@ pub(crate) fn kuhn_euler_characteristic(occ: &Occupancy) -> i64 {
         1 - edges + triangles - tetrahedra
     });
     let bd = occ.brick_dims();
-    let dims = occ.grid().dims;
     let full = |c: [usize; 3]| c.iter().zip(&bd).all(|(x, n)| x < n) && occ.brick(c[0], c[1], c[2]) == Brick::Full;
     (0..bd[0] * bd[1] * bd[2])
         .into_par_iter()
@@ -194,8 +193,7 @@ pub(crate) fn kuhn_euler_characteristic(occ: &Occupancy) -> i64 {
             for z in 0..W {
                 for y in 0..W {
                     for x in 0..W {
-                        let v = [base[0] + x, base[1] + y, base[2] + z];
-                        local[x + W * (y + W * z)] = (0..3).all(|a| v[a] < dims[a]) && occ.get(v[0], v[1], v[2]);
+                        local[x + W * (y + W * z)] = occ.get(base[0] + x, base[1] + y, base[2] + z);
                     }
                 }
             }
