@@ -674,7 +674,7 @@ pub(crate) struct ViewSample {
 
 /// Outward normal estimate of voxel `v`: the normalised sum of the offsets to its empty
 /// 26-neighbours (out-of-grid counts as empty). Zero when it has none or they cancel.
-pub(crate) fn normal_estimate(occupied: &dyn Fn(i64, i64, i64) -> bool, v: [u32; 3]) -> [f32; 3] {
+pub(crate) fn normal_estimate(occupied: &impl Fn(i64, i64, i64) -> bool, v: [u32; 3]) -> [f32; 3] {
     let mut n = [0f32; 3];
     for dz in -1i64..=1 {
         for dy in -1i64..=1 {

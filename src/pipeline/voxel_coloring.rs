@@ -617,13 +617,19 @@ fn colouring_verdict_in(
     claimed: &[Vec<bool>],
     v: [u32; 3],
     params: &PhotoParams,
-    views: impl Iterator<Item = usize>,
+    views: impl Iterator<Item = usize> + Clone,
     mut footprint: impl FnMut(usize, &Footprint),
 ) -> Option<bool> {
+    let normal = normal_estimate(&|i, j, k| dense.get(i, j, k), v);
+    // Only a view facing the voxel gives a sample: without one the verdict is `None` whatever the
+    // pixels, and no footprint is needed (a voxel whose normal points away from every view of a
+    // sweep is common: the far side of the object).
+    if !views.clone().any(|n| facing(&cams[n], cams[n].point(v, [0.0; 3]), normal) >= params.min_cos) {
+        return None;
+    }
     let mut samples = Vec::new();
     let mut patterns = Vec::new();
     let mut rim = false;
-    let normal = normal_estimate(&|i, j, k| dense.get(i, j, k), v);
     for n in views {
         let (cam, px, marks) = (&cams[n], &pixels[n], &claimed[n]);
         let Some(fp) = cam.footprint(v) else { continue };
