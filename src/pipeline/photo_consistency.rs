@@ -341,13 +341,20 @@ impl VoxelCamera {
     #[inline]
     pub(crate) fn project(&self, p: [f32; 3]) -> (f32, f32, f32) {
         let c = [0, 1, 2].map(|a| self.r[a][0] * p[0] + self.r[a][1] * p[1] + self.r[a][2] * p[2] + self.t[a]);
-        let (x, y) = (c[0] / c[2], c[1] / c[2]);
+        let (u, w) = self.lens(c[0] / c[2], c[1] / c[2]);
+        (c[2], u, w)
+    }
+
+    /// Continuous pixel coordinates of normalised image point `(x, y)` (`x/z`, `y/z` of a
+    /// camera-frame point), through every lens term (also when all are zero).
+    #[inline]
+    fn lens(&self, x: f32, y: f32) -> (f32, f32) {
         let r2 = x * x + y * y;
         // As `Intrinsics::distort`: radial k1 k2 k3, tangential p1 p2.
         let f = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
         let xd = x * f + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
         let yd = y * f + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
-        (c[2], self.fx * xd + self.skew * yd + self.cx, self.fy * yd + self.cy)
+        (self.fx * xd + self.skew * yd + self.cx, self.fy * yd + self.cy)
     }
 
     /// The pixel a continuous image point falls in, if inside the image.
@@ -375,11 +382,11 @@ impl VoxelCamera {
                 self.origin[a] + i as f32 * self.size
             });
             let c = [0, 1, 2].map(|a| self.r[a][0] * p[0] + self.r[a][1] * p[1] + self.r[a][2] * p[2] + self.t[a]);
-            let (z, u, w) = self.project(p);
+            let (z, x, y) = (c[2], c[0] / c[2], c[1] / c[2]);
+            let (u, w) = self.lens(x, y);
             if z.is_nan() || z <= 0.0 || !u.is_finite() || !w.is_finite() {
                 return None;
             }
-            let (x, y) = (c[0] / c[2], c[1] / c[2]);
             xa = xa.min(x);
             xb = xb.max(x);
             ya = ya.min(y);
@@ -395,8 +402,8 @@ impl VoxelCamera {
         // A footprint is the pixels whose centres lie in its voxel's rectangle, or the pixel its
         // centre falls in: all within one pixel of the box's rectangle.
         let clip = |lo: f32, hi: f32, n: usize| {
-            let a = (lo.floor() - 1.0).clamp(0.0, n as f32) as usize;
-            let b = (hi.floor() + 2.0).clamp(0.0, n as f32) as usize;
+            let a = (floor_f32(lo) - 1.0).clamp(0.0, n as f32) as usize;
+            let b = (floor_f32(hi) + 2.0).clamp(0.0, n as f32) as usize;
             (a, b.max(a))
         };
         let (x0, x1) = clip(u0, u1, self.width);
