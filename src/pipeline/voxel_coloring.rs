@@ -1352,6 +1352,38 @@ mod tests {
     }
 
     #[test]
+    fn a_colouring_verdict_takes_footprints_only_for_a_voxel_some_view_faces() {
+        let (truth, hull) = scene();
+        // Every camera looks down from 55 degrees: none faces the block's bottom.
+        let cams: Vec<CameraModel> = (0..12).map(|n| camera(n as f64 * 30.0, 55.0)).collect();
+        let images = render(&truth, &cams);
+        let views: Vec<PhotoView<'_>> =
+            cams.iter().zip(&images).map(|(c, i)| PhotoView { camera: *c, image: i, mask: None }).collect();
+        let params = PhotoParams { threshold: 10.0, min_cos: 0.4, ..PhotoParams::default() };
+        let g = grid();
+        let vcams: Vec<VoxelCamera> = cams.iter().map(|c| VoxelCamera::new(c, &g)).collect();
+        let pixels = ViewPixels::all(&views);
+        let claimed: Vec<Vec<bool>> = vcams.iter().map(|c| vec![false; c.width * c.height]).collect();
+        let dense = Dense::from(&hull);
+        let verdict = |v: [u32; 3]| {
+            let mut footprints = 0;
+            let verdict =
+                colouring_verdict_in(&dense, &vcams, &pixels, &claimed, v, &params, 0..vcams.len(), |_, _| {
+                    footprints += 1
+                });
+            (verdict, footprints)
+        };
+        // The middle of the bottom face: its normal points down, away from every view. Left unseen,
+        // and not one footprint taken.
+        assert_eq!(normal_estimate(&|i, j, k| dense.get(i, j, k), [12, 12, 2]), [0.0, 0.0, -1.0]);
+        assert_eq!(verdict([12, 12, 2]), (None, 0));
+        // A voxel of the top face beside the pit faces every view: judged, with a footprint in each.
+        let (top, footprints) = verdict([5, 12, 17]);
+        assert!(top.is_some());
+        assert_eq!(footprints, vcams.len());
+    }
+
+    #[test]
     fn voxel_colouring_visits_each_voxel_once_from_one_side() {
         let (truth, hull) = scene();
         let cams: Vec<CameraModel> = (0..5).map(|n| camera(-40.0 + n as f64 * 20.0, 55.0)).collect();
