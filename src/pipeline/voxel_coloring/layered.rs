@@ -132,23 +132,19 @@ pub(super) fn color_along(
         }
         active.retain(|&b| bricks[b].last >= layer);
         // Close the views in which a brick's rectangle is all claimed or outside the silhouette,
-        // and drop the bricks no view is open in. The bricks are checked side by side (each
-        // reads the claims only), then their open views replaced in order.
-        let still_open: Vec<Vec<(u32, usize)>> = active
-            .par_iter()
-            .map(|&b| {
-                let brick = &bricks[b];
-                brick
-                    .open
-                    .iter()
-                    .filter_map(|&(n, from)| match brick.rects[n as usize] {
-                        None => Some((n, from)),
-                        Some(r) => pixels[n as usize].first_unsettled(&claimed[n as usize], r, from).map(|k| (n, k)),
-                    })
-                    .collect()
-            })
-            .collect();
-        for (&b, open) in active.iter().zip(still_open) {
+        // and drop the bricks no view is open in. The bricks' lists of open views are taken out,
+        // narrowed side by side in place (each reads the claims only) and put back.
+        let mut open: Vec<Vec<(u32, usize)>> = active.iter().map(|&b| std::mem::take(&mut bricks[b].open)).collect();
+        open.par_iter_mut().zip(&active).for_each(|(open, &b)| {
+            let rects = &bricks[b].rects;
+            open.retain_mut(|(n, from)| match rects[*n as usize] {
+                None => true,
+                Some(r) => {
+                    pixels[*n as usize].first_unsettled(&claimed[*n as usize], r, *from).map(|k| *from = k).is_some()
+                }
+            });
+        });
+        for (&b, open) in active.iter().zip(open) {
             bricks[b].open = open;
         }
         active.retain(|&b| !bricks[b].open.is_empty());
