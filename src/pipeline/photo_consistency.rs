@@ -320,13 +320,9 @@ impl VoxelCamera {
     /// Continuous pixel coordinates of camera-frame point `(x, y, z)` (`z > 0`).
     #[inline]
     fn image_of(&self, x: f32, y: f32, z: f32) -> (f32, f32) {
-        let (mut x, mut y) = (x / z, y / z);
+        let (x, y) = (x / z, y / z);
         if self.distorted {
-            let r2 = x * x + y * y;
-            let f = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
-            let xd = x * f + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
-            let yd = y * f + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
-            (x, y) = (xd, yd);
+            return self.lens(x, y);
         }
         (self.fx * x + self.skew * y + self.cx, self.fy * y + self.cy)
     }

@@ -608,7 +608,8 @@ fn colouring_verdict(
 /// every view left out has none of `v`'s footprint pixels both unclaimed and inside its silhouette
 /// (such a view contributes no sample and no contour-band pixel). `footprint` is called with each
 /// consulted view's index and `v`'s footprint there (views where a corner is behind the camera
-/// have none), in the order of `views`.
+/// have none), in the order of `views`; not at all when none of `views` faces `v` (cosine below
+/// `params.min_cos`), whose verdict is then `None` whatever the pixels.
 #[allow(clippy::too_many_arguments)] // one voxel's visit, kept as plain arguments
 fn colouring_verdict_in(
     dense: &Dense,
