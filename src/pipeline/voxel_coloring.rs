@@ -793,18 +793,20 @@ pub fn measure_noise_and_colour(
     views: &[PhotoView<'_>],
     params: &PhotoParams,
 ) -> Result<(PhotoNoise, ColouredSurface, f64), PhotoError> {
-    measured_start(start, views, params).map(|(_, noise, surface, error)| (noise, surface, error))
+    measured_start(start, views, params, false).map(|(_, noise, surface, error)| (noise, surface, error))
 }
 
 /// The carver's state of `start` (checked against `views` and `params`), with the noise, the
 /// colouring of the start's surface and its re-projection error measured through it: the shared
-/// first step of [`measure_noise_and_colour`] and [`carve_photo_measured`].
+/// first step of [`measure_noise_and_colour`] and [`carve_photo_measured`]; `carving` as
+/// `incremental::Carver::checked` takes it (only a state that will be carved needs its tiles).
 fn measured_start<'a>(
     start: &Occupancy,
     views: &'a [PhotoView<'a>],
     params: &PhotoParams,
+    carving: bool,
 ) -> Result<(incremental::Carver<'a>, PhotoNoise, ColouredSurface, f64), PhotoError> {
-    let c = incremental::Carver::checked(start, views, params)?;
+    let c = incremental::Carver::checked(start, views, params, carving)?;
     let (spreads, surface, error) = incremental::surface_spreads(&c, views, params);
     Ok((c, noise_of(views, spreads), surface, error))
 }
@@ -820,7 +822,7 @@ pub fn carve_photo_measured(
     params: &PhotoParams,
 ) -> Result<(PhotoNoise, ColouredSurface, f64, PhotoModel), PhotoError> {
     let t = Instant::now();
-    let (c, noise, surface, error) = measured_start(start, views, params)?;
+    let (c, noise, surface, error) = measured_start(start, views, params, true)?;
     let measured = params.with_measured_noise(&noise);
     check_inputs(start.grid(), views, &measured)?;
     let model = incremental::carve_from(c, start, views, &measured, t);

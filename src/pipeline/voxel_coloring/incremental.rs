@@ -112,32 +112,37 @@ struct ViewState {
     tiles: Vec<bool>,
     tiles_w: usize,
     /// Per redraw tile, the slots whose footprints meet it, with their footprints (dead slots
-    /// dropped as they are met).
+    /// dropped as they are met). Empty, like `tiles`, in a state that is only measured, never
+    /// updated (see [`Carver::checked`]).
     tile_slots: Vec<Vec<(u32, Packed)>>,
 }
 
 impl ViewState {
-    fn new(cam: &VoxelCamera) -> ViewState {
+    /// An empty state of `cam`'s view, with its redraw tiles when `carving`.
+    fn new(cam: &VoxelCamera, carving: bool) -> ViewState {
         let n = cam.width * cam.height;
         let tiles_w = cam.width.div_ceil(TILE);
+        let tiles = if carving { tiles_w * cam.height.div_ceil(TILE) } else { 0 };
         ViewState {
             fps: Vec::new(),
             samples: Vec::new(),
             depth: vec![f32::INFINITY; n],
             id: vec![NONE; n],
             width: cam.width,
-            tiles: vec![false; tiles_w * cam.height.div_ceil(TILE)],
+            tiles: vec![false; tiles],
             tiles_w,
-            tile_slots: vec![Vec::new(); tiles_w * cam.height.div_ceil(TILE)],
+            tile_slots: vec![Vec::new(); tiles],
         }
     }
 
-    /// Cache the footprints of new slots `first..` and enter them in the tiles they meet.
+    /// Cache the footprints of new slots `first..` and enter them in the tiles they meet (when the
+    /// state has tiles).
     fn extend(&mut self, cam: &VoxelCamera, first: u32, voxels: &[[u32; 3]]) {
+        let tiled = !self.tile_slots.is_empty();
         for (s, &v) in (first..).zip(voxels) {
             let packed = Packed::of(cam.footprint(v));
             self.fps.push(packed);
-            let Some(fp) = packed.get() else { continue };
+            let Some(fp) = packed.get().filter(|_| tiled) else { continue };
             for ty in fp.y0 / TILE..=(fp.y1 - 1) / TILE {
                 for tx in fp.x0 / TILE..=(fp.x1 - 1) / TILE {
                     self.tile_slots[ty * self.tiles_w + tx].push((s, packed));
@@ -184,6 +189,7 @@ impl ViewState {
     /// slots went dead, `added` slots are new (their footprints already cached), `live` says which
     /// slots are live. Re-samples and returns the live slots whose owned pixels changed (sorted).
     fn update(&mut self, px: &ViewPixels<'_>, carved: &[u32], added: &[u32], live: &[bool], lins: &[u32]) -> Vec<u32> {
+        debug_assert!(!self.tile_slots.is_empty(), "a state built without redraw tiles is never updated");
         let mut marks = Vec::new();
         let mut reset = Vec::new();
         let mut flagged = Vec::new();
@@ -321,11 +327,15 @@ pub(super) struct Carver<'a> {
 
 impl<'a> Carver<'a> {
     /// The state of `start` in `views` after checking the inputs (`check_inputs`, and image sizes
-    /// that fit the packed footprints' 16 bits).
+    /// that fit the packed footprints' 16 bits). `carving`: the state will be carved, so each view
+    /// keeps its redraw tiles (the slots meeting each 8x8 pixel tile, 16 bytes an entry: 47 MB for
+    /// the shipped voxel-colouring rig's hull in 36 views); a state that is only measured (the
+    /// noise, the start's colours) goes without them.
     pub(super) fn checked(
         start: &Occupancy,
         views: &'a [PhotoView<'a>],
         params: &PhotoParams,
+        carving: bool,
     ) -> Result<Carver<'a>, PhotoError> {
         check_inputs(start.grid(), views, params)?;
         for (n, v) in views.iter().enumerate() {
@@ -333,15 +343,15 @@ impl<'a> Carver<'a> {
                 return Err(PhotoError::ImageSize { view: n, width: v.camera.width, height: v.camera.height });
             }
         }
-        Ok(Carver::new(start, views))
+        Ok(Carver::new(start, views, carving))
     }
 
-    fn new(start: &Occupancy, views: &'a [PhotoView<'a>]) -> Carver<'a> {
+    fn new(start: &Occupancy, views: &'a [PhotoView<'a>], carving: bool) -> Carver<'a> {
         let grid = *start.grid();
         let cams: Vec<VoxelCamera> = views.iter().map(|v| VoxelCamera::new(&v.camera, &grid)).collect();
         // Each view's item buffer is a fresh 8 bytes a pixel: the page faults of zeroing them are
         // shared between the cores.
-        let states = cams.par_iter().map(ViewState::new).collect();
+        let states = cams.par_iter().map(|cam| ViewState::new(cam, carving)).collect();
         let mut c = Carver {
             cams,
             pixels: ViewPixels::all(views),
@@ -523,7 +533,7 @@ pub(super) fn carve(
     params: &PhotoParams,
 ) -> Result<PhotoModel, PhotoError> {
     let t = std::time::Instant::now();
-    let c = Carver::checked(start, views, params)?;
+    let c = Carver::checked(start, views, params, true)?;
     Ok(carve_from(c, start, views, params, t))
 }
 
