@@ -381,16 +381,15 @@ impl Occupancy {
     /// and a full one whose six face neighbours are full bricks of the grid, hold none.
     pub fn boundary_voxels(&self) -> Vec<[u32; 3]> {
         let bd = self.brick_dims();
-        let full = |c: [usize; 3], a: usize, up: bool| {
-            let mut n = c;
-            if up {
-                n[a] += 1;
-            } else if n[a] == 0 {
-                return false;
-            } else {
-                n[a] -= 1;
-            }
-            n[a] < bd[a] && self.brick(n[0], n[1], n[2]) == Brick::Full
+        // `brick` is empty beyond the grid's far side; the near side is checked here.
+        let full = |c: [usize; 3]| self.brick(c[0], c[1], c[2]) == Brick::Full;
+        let enclosed = |c: [usize; 3]| {
+            (0..3).all(|a| {
+                let (mut lo, mut hi) = (c, c);
+                hi[a] += 1;
+                lo[a] = lo[a].wrapping_sub(1);
+                c[a] > 0 && full(lo) && full(hi)
+            })
         };
         let per_brick: Vec<Vec<[u32; 3]>> = (0..bd[0] * bd[1] * bd[2])
             .into_par_iter()
@@ -398,7 +397,7 @@ impl Occupancy {
                 let c = [b % bd[0], b / bd[0] % bd[1], b / (bd[0] * bd[1])];
                 match self.brick(c[0], c[1], c[2]) {
                     Brick::Empty => return Vec::new(),
-                    Brick::Full if (0..3).all(|a| full(c, a, false) && full(c, a, true)) => return Vec::new(),
+                    Brick::Full if enclosed(c) => return Vec::new(),
                     _ => {}
                 }
                 let mut out = Vec::new();

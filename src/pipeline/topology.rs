@@ -174,7 +174,8 @@ pub(crate) fn kuhn_euler_characteristic(occ: &Occupancy) -> i64 {
         1 - edges + triangles - tetrahedra
     });
     let bd = occ.brick_dims();
-    let full = |c: [usize; 3]| c.iter().zip(&bd).all(|(x, n)| x < n) && occ.brick(c[0], c[1], c[2]) == Brick::Full;
+    // `brick` is empty beyond the grid.
+    let full = |c: [usize; 3]| occ.brick(c[0], c[1], c[2]) == Brick::Full;
     (0..bd[0] * bd[1] * bd[2])
         .into_par_iter()
         .map(|b| {
